@@ -1,0 +1,25 @@
+#pragma once
+/// Reading and writing OctoMap files.
+
+#include <memory>
+#include <stdexcept>
+#include <string>
+
+#include <octomap/OcTree.h>
+
+namespace mapmerge {
+
+/// Thrown for input that is not a readable occupancy map (clear message, never an abort).
+class MapError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+/// Loads an OcTree from a `.bt` (binary, max-likelihood) or `.ot` (full, with log-odds) file.
+/// Throws MapError for a missing file, another extension, or bytes that are not such a map.
+std::unique_ptr<octomap::OcTree> read_octree_file(const std::string& path);
+
+/// Writes `tree` as a `.bt` file. Throws MapError when the file cannot be written.
+void write_octree_file(const octomap::OcTree& tree, const std::string& path);
+
+}  // namespace mapmerge
