@@ -1,9 +1,9 @@
 #include "mapmerge/map/map_io.hpp"
 
 #include <fstream>
-#include <sstream>
+#include <vector>
 
-#include <octomap/AbstractOcTree.h>
+#include "mapmerge/map/map_codec.hpp"
 
 namespace mapmerge {
 namespace {
@@ -12,29 +12,45 @@ bool ends_with(const std::string& s, const std::string& suffix) {
   return s.size() >= suffix.size() && s.compare(s.size() - suffix.size(), suffix.size(), suffix) == 0;
 }
 
+std::vector<std::uint8_t> read_bytes(const std::string& path, std::size_t max_bytes) {
+  std::ifstream in(path, std::ios::binary | std::ios::ate);
+  if (!in) throw MapError("cannot open map file '" + path + "'");
+  const std::streamoff size = in.tellg();
+  if (size < 0) throw MapError("cannot read map file '" + path + "'");
+  if (static_cast<std::size_t>(size) >= max_bytes) {
+    throw MapError("'" + path + "' is " + std::to_string(size) + " bytes, limit " +
+                   std::to_string(max_bytes));
+  }
+  std::vector<std::uint8_t> bytes(static_cast<std::size_t>(size));
+  in.seekg(0);
+  if (!in.read(reinterpret_cast<char*>(bytes.data()), size)) {
+    throw MapError("cannot read map file '" + path + "'");
+  }
+  return bytes;
+}
+
 }  // namespace
 
 std::unique_ptr<octomap::OcTree> read_octree_file(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) throw MapError("cannot open map file '" + path + "'");
-  if (ends_with(path, ".bt")) {
-    auto tree = std::make_unique<octomap::OcTree>(0.1);
-    if (!tree->readBinary(in)) throw MapError("'" + path + "' is not a binary OctoMap (.bt)");
-    return tree;
-  }
+  Encoding encoding = Encoding::kOctomapBt;
   if (ends_with(path, ".ot")) {
-    std::unique_ptr<octomap::AbstractOcTree> abstract(octomap::AbstractOcTree::read(in));
-    auto* tree = dynamic_cast<octomap::OcTree*>(abstract.get());
-    if (tree == nullptr) throw MapError("'" + path + "' is not a full OcTree (.ot)");
-    abstract.release();
-    return std::unique_ptr<octomap::OcTree>(tree);
+    encoding = Encoding::kOctomapOt;
+  } else if (!ends_with(path, ".bt")) {
+    throw MapError("'" + path + "': unsupported map format (expected .bt or .ot)");
   }
-  throw MapError("'" + path + "': unsupported map format (expected .bt or .ot)");
+  // Files go through the same validation as wire payloads: OctoMap never parses unchecked bytes.
+  const DecodeLimits limits;
+  DecodeResult result = decode_map(read_bytes(path, limits.max_bytes), encoding, limits);
+  if (!result.ok()) throw MapError("'" + path + "': " + result.reason);
+  return std::move(result.tree);
 }
 
 void write_octree_file(const octomap::OcTree& tree, const std::string& path) {
   std::ofstream out(path, std::ios::binary);
-  if (!out || !tree.writeBinaryConst(out)) throw MapError("cannot write map file '" + path + "'");
+  const bool full = ends_with(path, ".ot");
+  if (!out || !(full ? tree.write(out) : tree.writeBinaryConst(out))) {
+    throw MapError("cannot write map file '" + path + "'");
+  }
 }
 
 }  // namespace mapmerge

@@ -16,10 +16,11 @@ class MapError : public std::runtime_error {
 };
 
 /// Loads an OcTree from a `.bt` (binary, max-likelihood) or `.ot` (full, with log-odds) file.
-/// Throws MapError for a missing file, another extension, or bytes that are not such a map.
+/// Throws MapError for a missing file, another extension, or bytes that are not such a map
+/// (validated by decode_map() with default DecodeLimits before OctoMap parses anything).
 std::unique_ptr<octomap::OcTree> read_octree_file(const std::string& path);
 
-/// Writes `tree` as a `.bt` file. Throws MapError when the file cannot be written.
+/// Writes `tree` as a `.bt` file (`.ot`, with log-odds, when the path ends so). Throws MapError when the file cannot be written.
 void write_octree_file(const octomap::OcTree& tree, const std::string& path);
 
 }  // namespace mapmerge

@@ -1,0 +1,28 @@
+#pragma once
+/// Non-recursive structural checks of OctoMap tree bodies (internal to mapmerge_core).
+
+#include <cstddef>
+#include <cstdint>
+#include <string>
+
+#include "mapmerge/map/map_codec.hpp"
+
+namespace mapmerge::detail {
+
+/// What a scan found: the node count of a well-formed body, or why it is not one.
+struct TreeScan {
+  DecodeError error = DecodeError::kNone;
+  std::string reason;
+  std::size_t num_nodes = 0;  ///< nodes including the root (0 for an empty body)
+  bool root_only = false;     ///< a root without children (no information)
+};
+
+/// Checks a binary body (OcTree::writeBinaryData: per node 2 bytes of 8 two-bit child codes,
+/// depth-first). Every byte must be consumed; depth <= 16; at most `max_nodes` nodes.
+TreeScan scan_binary_body(const std::uint8_t* data, std::size_t size, std::size_t max_nodes);
+
+/// Checks a full body (OcTree::writeData: per node a float log-odds + 1 byte child mask,
+/// depth-first). Every byte must be consumed; depth <= 16; values finite; at most `max_nodes`.
+TreeScan scan_full_body(const std::uint8_t* data, std::size_t size, std::size_t max_nodes);
+
+}  // namespace mapmerge::detail

@@ -1,0 +1,370 @@
+// Wire codec: round trips on real maps, and every hostile case rejected with its own reason.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <random>
+#include <string>
+
+#include <zstd.h>
+
+#include "map_test_util.hpp"
+#include "mapmerge/map/map_codec.hpp"
+
+namespace mapmerge {
+namespace {
+
+using test::as_bytes;
+using test::as_string;
+using test::body_offset;
+using test::file_bytes;
+
+const char* const kMaps[] = {"fr_079.bt", "geb079.bt", "fr_078_tidyup.bt"};
+
+DecodeResult decode_bt(const std::vector<std::uint8_t>& bytes, const DecodeLimits& limits = {}) {
+  return decode_map(bytes, Encoding::kOctomapBt, limits);
+}
+
+/// Replaces the first occurrence of `from` in the header of `bytes` by `to`.
+std::vector<std::uint8_t> edit_header(const std::vector<std::uint8_t>& bytes,
+                                      const std::string& from, const std::string& to) {
+  std::string text = as_string(bytes);
+  const std::size_t pos = text.find(from);
+  EXPECT_NE(pos, std::string::npos) << from;
+  EXPECT_LT(pos, body_offset(bytes));
+  text.replace(pos, from.size(), to);
+  return as_bytes(text);
+}
+
+std::string size_line(const std::vector<std::uint8_t>& bytes) {
+  const std::string text = as_string(bytes);
+  const std::size_t pos = text.find("\nsize ") + 1;
+  return text.substr(pos, text.find('\n', pos) - pos);
+}
+
+// --- round trips -------------------------------------------------------------------------------
+
+class RealMap : public ::testing::TestWithParam<const char*> {};
+
+TEST_P(RealMap, BinaryRoundTripIsByteIdentical) {
+  const auto bytes = file_bytes(GetParam());
+  ASSERT_GT(bytes.size(), 1000U);
+  const DecodeResult decoded = decode_bt(bytes);
+  ASSERT_TRUE(decoded.ok()) << decoded.reason;
+  EXPECT_FALSE(decoded.empty);
+  EXPECT_EQ(size_line(bytes), "size " + std::to_string(decoded.num_nodes));
+  EXPECT_EQ(encode_map(*decoded.tree, Encoding::kOctomapBt), bytes);
+}
+
+TEST_P(RealMap, ZstdRoundTripIsByteIdenticalAndSmaller) {
+  const auto bytes = file_bytes(GetParam());
+  const auto tree = decode_bt(bytes).tree;
+  ASSERT_TRUE(tree);
+  const auto packed = encode_map(*tree, Encoding::kOctomapBtZstd);
+  EXPECT_LT(packed.size(), bytes.size());
+  const DecodeResult decoded = decode_map(packed, "octomap-bt+zstd", DecodeLimits{});
+  ASSERT_TRUE(decoded.ok()) << decoded.reason;
+  EXPECT_EQ(encode_map(*decoded.tree, Encoding::kOctomapBt), bytes);
+}
+
+TEST_P(RealMap, FullFormatRoundTripIsByteIdentical) {
+  const auto tree = decode_bt(file_bytes(GetParam())).tree;
+  ASSERT_TRUE(tree);
+  const auto full = encode_map(*tree, Encoding::kOctomapOt);
+  const DecodeResult decoded = decode_map(full, Encoding::kOctomapOt, DecodeLimits{});
+  ASSERT_TRUE(decoded.ok()) << decoded.reason;
+  EXPECT_EQ(decoded.num_nodes, tree->size());
+  EXPECT_EQ(encode_map(*decoded.tree, Encoding::kOctomapOt), full);
+}
+
+TEST_P(RealMap, Ros2MessageBodiesRoundTrip) {
+  const auto tree = decode_bt(file_bytes(GetParam())).tree;
+  ASSERT_TRUE(tree);
+  for (const bool binary : {true, false}) {
+    const auto body = encode_tree_body(*tree, binary);
+    const DecodeResult decoded =
+        decode_tree_body("OcTree", tree->getResolution(), binary, body, DecodeLimits{});
+    ASSERT_TRUE(decoded.ok()) << decoded.reason;
+    EXPECT_EQ(decoded.num_nodes, tree->size());
+    EXPECT_EQ(encode_tree_body(*decoded.tree, binary), body);
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(Data, RealMap, ::testing::ValuesIn(kMaps));
+
+// --- encoding field ----------------------------------------------------------------------------
+
+TEST(Codec, EncodingNamesRoundTrip) {
+  for (const Encoding e : {Encoding::kOctomapBt, Encoding::kOctomapBtZstd, Encoding::kOctomapOt}) {
+    EXPECT_EQ(parse_encoding(to_string(e)), e);
+  }
+  EXPECT_FALSE(parse_encoding("OCTOMAP-BT"));
+  EXPECT_FALSE(parse_encoding(""));
+}
+
+TEST(Codec, UnknownEncodingFieldIsRejected) {
+  const DecodeResult r = decode_map(file_bytes("geb079.bt"), "octomap-png", DecodeLimits{});
+  EXPECT_EQ(r.error, DecodeError::kUnknownEncoding);
+  EXPECT_FALSE(r.tree);
+  EXPECT_NE(r.reason.find("octomap-png"), std::string::npos) << r.reason;
+}
+
+TEST(Codec, EncodingFieldThatDoesNotMatchTheBytesIsRejected) {
+  const auto bytes = file_bytes("geb079.bt");
+  const auto tree = decode_bt(bytes).tree;
+  ASSERT_TRUE(tree);
+  const auto packed = encode_map(*tree, Encoding::kOctomapBtZstd);
+  EXPECT_EQ(decode_bt(packed).error, DecodeError::kEncodingMismatch);
+  EXPECT_EQ(decode_map(bytes, Encoding::kOctomapBtZstd, {}).error, DecodeError::kEncodingMismatch);
+  EXPECT_EQ(decode_map(bytes, Encoding::kOctomapOt, {}).error, DecodeError::kEncodingMismatch);
+  const auto full = encode_map(*tree, Encoding::kOctomapOt);
+  EXPECT_EQ(decode_bt(full).error, DecodeError::kEncodingMismatch);
+}
+
+// --- empty maps --------------------------------------------------------------------------------
+
+TEST(Codec, EmptyMapIsValidButFlagged) {
+  const octomap::OcTree empty(0.05);
+  for (const Encoding e : {Encoding::kOctomapBt, Encoding::kOctomapBtZstd, Encoding::kOctomapOt}) {
+    const DecodeResult r = decode_map(encode_map(empty, e), e, DecodeLimits{});
+    ASSERT_TRUE(r.ok()) << to_string(e) << ": " << r.reason;
+    EXPECT_TRUE(r.empty);
+    EXPECT_EQ(r.num_nodes, 0U);
+    EXPECT_DOUBLE_EQ(r.tree->getResolution(), 0.05);
+  }
+  const DecodeResult body = decode_tree_body("OcTree", 0.05, true, {}, DecodeLimits{});
+  ASSERT_TRUE(body.ok()) << body.reason;
+  EXPECT_TRUE(body.empty);
+}
+
+TEST(Codec, RootWithoutChildrenIsAnEmptyMapNotAnOccupiedWorld) {
+  const DecodeResult r = decode_tree_body("OcTree", 0.05, true, {0, 0}, DecodeLimits{});
+  ASSERT_TRUE(r.ok()) << r.reason;
+  EXPECT_TRUE(r.empty);
+  EXPECT_EQ(r.tree->size(), 0U);
+}
+
+// --- hostile bytes: truncation, garbage, structure -----------------------------------------------
+
+TEST(Hostile, TruncatedBytesAreRejectedAtEveryCut) {
+  const auto bytes = file_bytes("geb079.bt");
+  const std::size_t body = body_offset(bytes);
+  int rejected = 0;
+  for (std::size_t cut = 0; cut < bytes.size(); cut += 997) {
+    const std::vector<std::uint8_t> part(bytes.begin(), bytes.begin() + static_cast<long>(cut));
+    const DecodeResult r = decode_bt(part);
+    ASSERT_FALSE(r.ok()) << "cut at " << cut;
+    EXPECT_EQ(r.error, cut <= body ? DecodeError::kBadHeader : DecodeError::kTruncated)
+        << "cut at " << cut << ": " << r.reason;
+    ++rejected;
+  }
+  EXPECT_GT(rejected, 200);
+}
+
+TEST(Hostile, StreamEndingMidNodeIsRejected) {
+  auto bytes = file_bytes("fr_078_tidyup.bt");
+  bytes.resize(body_offset(bytes) + 1001);  // odd: half of a two-byte node record
+  const DecodeResult r = decode_bt(bytes);
+  EXPECT_EQ(r.error, DecodeError::kTruncated);
+  EXPECT_NE(r.reason.find("mid-node"), std::string::npos) << r.reason;
+}
+
+TEST(Hostile, GarbageAfterValidDataIsRejected) {
+  for (const std::size_t extra : {1, 2, 1000}) {
+    auto bytes = file_bytes("geb079.bt");
+    bytes.insert(bytes.end(), extra, 0x5A);
+    const DecodeResult r = decode_bt(bytes);
+    EXPECT_EQ(r.error, DecodeError::kTrailingBytes) << r.reason;
+    EXPECT_NE(r.reason.find(std::to_string(extra) + " bytes after"), std::string::npos) << r.reason;
+  }
+}
+
+TEST(Hostile, HeaderClaimingTenToTheTwelveNodesIsRejectedBeforeParsing) {
+  const auto bytes = file_bytes("fr_079.bt");
+  const auto forged = edit_header(bytes, size_line(bytes), "size 1000000000000");
+  const DecodeResult r = decode_bt(forged);
+  EXPECT_EQ(r.error, DecodeError::kTooManyNodes) << r.reason;
+  const auto overflow = edit_header(bytes, size_line(bytes), "size 99999999999999999999999");
+  EXPECT_EQ(decode_bt(overflow).error, DecodeError::kTooManyNodes);
+}
+
+TEST(Hostile, HeaderSizeDisagreeingWithBodyIsRejected) {
+  const auto bytes = file_bytes("geb079.bt");
+  const auto forged = edit_header(bytes, size_line(bytes), "size 12345");
+  const DecodeResult r = decode_bt(forged);
+  EXPECT_EQ(r.error, DecodeError::kNodeCountMismatch) << r.reason;
+}
+
+TEST(Hostile, NodeCapAppliesToTheBodyItself) {
+  DecodeLimits limits;
+  limits.max_nodes = 100000;
+  const auto bytes = file_bytes("geb079.bt");
+  const DecodeResult claimed = decode_bt(bytes, limits);
+  EXPECT_EQ(claimed.error, DecodeError::kTooManyNodes);
+  // The ROS 2 path has no header count: the pre-pass must stop at the cap on its own.
+  const std::vector<std::uint8_t> body(bytes.begin() + static_cast<long>(body_offset(bytes)),
+                                       bytes.end());
+  const DecodeResult counted = decode_tree_body("OcTree", 0.08, true, body, limits);
+  EXPECT_EQ(counted.error, DecodeError::kTooManyNodes) << counted.reason;
+}
+
+TEST(Hostile, AllOnesBodyThatWouldOverflowTheStackIsRejectedAsTooDeep) {
+  // 200 KB of 0xFF: every child an inner node, forever. OctoMap recurses once per byte pair.
+  const std::vector<std::uint8_t> ones(200 * 1024, 0xFF);
+  const DecodeResult body = decode_tree_body("OcTree", 0.05, true, ones, DecodeLimits{});
+  EXPECT_EQ(body.error, DecodeError::kTooDeep) << body.reason;
+  auto file = file_bytes("geb079.bt");
+  file.resize(body_offset(file));
+  file.insert(file.end(), ones.begin(), ones.end());
+  EXPECT_EQ(decode_bt(file).error, DecodeError::kTooDeep);
+}
+
+TEST(Hostile, InnerNodeWithoutChildrenIsRejected) {
+  // Root: child 0 is an inner node (code 3); that node's record says it has no children.
+  const DecodeResult r = decode_tree_body("OcTree", 0.05, true, {0x03, 0x00, 0x00, 0x00}, {});
+  EXPECT_EQ(r.error, DecodeError::kMalformedTree) << r.reason;
+}
+
+TEST(Hostile, FullFormatWithNonFiniteLogOddsIsRejected) {
+  const auto tree = decode_bt(file_bytes("geb079.bt")).tree;
+  ASSERT_TRUE(tree);
+  auto body = encode_tree_body(*tree, false);
+  const float nan = std::nanf("");
+  std::memcpy(body.data() + 5, &nan, sizeof(nan));  // the root's first child's value
+  const DecodeResult r = decode_tree_body("OcTree", 0.08, false, body, DecodeLimits{});
+  EXPECT_EQ(r.error, DecodeError::kBadValue) << r.reason;
+}
+
+TEST(Hostile, RandomMutationsOfARealMapNeverCrashAndAreAlwaysConsistent) {
+  const auto bytes = file_bytes("geb079.bt");
+  const std::size_t body = body_offset(bytes);
+  std::mt19937 rng(7);
+  int accepted = 0;
+  for (int round = 0; round < 150; ++round) {
+    auto mutated = bytes;
+    std::uniform_int_distribution<std::size_t> where(body, bytes.size() - 1);
+    for (int k = 0; k < 1 + round % 4; ++k) mutated[where(rng)] = static_cast<std::uint8_t>(rng());
+    const DecodeResult r = decode_bt(mutated);
+    if (r.ok()) {
+      ++accepted;
+      EXPECT_EQ(r.tree->size(), r.num_nodes);
+    } else {
+      EXPECT_FALSE(r.reason.empty());
+    }
+  }
+  EXPECT_LT(accepted, 150);  // flipping bits in the structure must be caught most of the time
+}
+
+// --- header values -----------------------------------------------------------------------------
+
+TEST(Hostile, BadResolutionsAreRejected) {
+  const auto bytes = file_bytes("geb079.bt");
+  for (const char* res : {"0", "-0.08", "nan", "NaN", "inf", "-inf", "1e-300", "1e300", "0.0001",
+                          "100"}) {
+    const DecodeResult r = decode_bt(edit_header(bytes, "res 0.08", std::string("res ") + res));
+    EXPECT_EQ(r.error, DecodeError::kBadResolution) << res << ": " << r.reason;
+  }
+  EXPECT_EQ(decode_bt(edit_header(bytes, "res 0.08", "res 0.08x")).error, DecodeError::kBadHeader);
+  EXPECT_EQ(decode_bt(edit_header(bytes, "res 0.08", "res")).error, DecodeError::kBadHeader);
+  // The ROS 2 message path carries the resolution as a double.
+  const std::vector<std::uint8_t> body(bytes.begin() + static_cast<long>(body_offset(bytes)),
+                                       bytes.end());
+  for (const double res : {0.0, -1.0, std::nan(""), 1e-300, std::numeric_limits<double>::infinity()}) {
+    EXPECT_EQ(decode_tree_body("OcTree", res, true, body, {}).error, DecodeError::kBadResolution);
+  }
+}
+
+TEST(Hostile, ConfigurableResolutionRange) {
+  DecodeLimits limits;
+  limits.min_resolution = 0.1;
+  EXPECT_EQ(decode_bt(file_bytes("geb079.bt"), limits).error, DecodeError::kBadResolution);
+}
+
+TEST(Hostile, UnknownTreeIdIsRejected) {
+  const auto bytes = file_bytes("geb079.bt");
+  for (const char* id : {"ColorOcTree", "CountingOcTree", "1", "OcTreee"}) {
+    const DecodeResult r = decode_bt(edit_header(bytes, "id OcTree", std::string("id ") + id));
+    EXPECT_EQ(r.error, DecodeError::kUnknownTreeId) << id << ": " << r.reason;
+  }
+  EXPECT_EQ(decode_tree_body("ColorOcTree", 0.05, true, {0, 0}, {}).error,
+            DecodeError::kUnknownTreeId);
+}
+
+TEST(Hostile, MalformedHeadersAreRejected) {
+  const auto bytes = file_bytes("geb079.bt");
+  EXPECT_EQ(decode_bt(edit_header(bytes, "# Octomap OcTree binary", "# Octomap OcTrie binary")).error,
+            DecodeError::kBadHeader);
+  EXPECT_EQ(decode_bt(edit_header(bytes, "\ndata\n", "\ndat\n")).error, DecodeError::kBadHeader);
+  EXPECT_EQ(decode_bt(edit_header(bytes, "id OcTree\n", "")).error, DecodeError::kBadHeader);
+  EXPECT_EQ(decode_bt(edit_header(bytes, "id OcTree", "id OcTree\nid OcTree")).error,
+            DecodeError::kBadHeader);
+  EXPECT_EQ(decode_bt(as_bytes(std::string(10000, '#'))).error, DecodeError::kBadHeader);
+  EXPECT_EQ(decode_bt({}).error, DecodeError::kBadHeader);
+}
+
+// --- size limits and compression ---------------------------------------------------------------
+
+TEST(Hostile, PayloadAtTheByteLimitIsRejectedBeforeParsing) {
+  DecodeLimits limits;
+  limits.max_bytes = 100000;
+  const DecodeResult r = decode_bt(file_bytes("geb079.bt"), limits);
+  EXPECT_EQ(r.error, DecodeError::kTooLarge) << r.reason;
+}
+
+TEST(Hostile, ZstdFrameDeclaringMoreThanTheLimitIsRejectedWithoutInflating) {
+  const auto tree = decode_bt(file_bytes("fr_079.bt")).tree;
+  ASSERT_TRUE(tree);
+  const auto packed = encode_map(*tree, Encoding::kOctomapBtZstd);
+  DecodeLimits limits;
+  limits.max_bytes = 600000;  // > compressed size (~440 KB), < the 706 KB it declares
+  ASSERT_LT(packed.size(), limits.max_bytes);
+  const DecodeResult r = decode_map(packed, Encoding::kOctomapBtZstd, limits);
+  EXPECT_EQ(r.error, DecodeError::kTooLarge);
+  EXPECT_NE(r.reason.find("declares"), std::string::npos) << r.reason;
+}
+
+TEST(Hostile, ZstdBombWithoutDeclaredSizeStopsAtTheLimit) {
+  // A streamed frame (no content size) of 64 MB of zeros is a few KB on the wire.
+  const std::vector<std::uint8_t> zeros(64 << 20, 0);
+  std::unique_ptr<ZSTD_CStream, decltype(&ZSTD_freeCStream)> cs(ZSTD_createCStream(),
+                                                                  &ZSTD_freeCStream);
+  ZSTD_initCStream(cs.get(), 1);
+  std::vector<std::uint8_t> packed(ZSTD_compressBound(zeros.size()));
+  ZSTD_outBuffer out{packed.data(), packed.size(), 0};
+  ZSTD_inBuffer in{zeros.data(), zeros.size(), 0};
+  ZSTD_compressStream(cs.get(), &out, &in);
+  ZSTD_endStream(cs.get(), &out);
+  packed.resize(out.pos);
+  ASSERT_EQ(ZSTD_getFrameContentSize(packed.data(), packed.size()), ZSTD_CONTENTSIZE_UNKNOWN);
+  DecodeLimits limits;
+  limits.max_bytes = 1 << 20;
+  const DecodeResult r = decode_map(packed, Encoding::kOctomapBtZstd, limits);
+  EXPECT_EQ(r.error, DecodeError::kTooLarge) << r.reason;
+}
+
+TEST(Hostile, CorruptCompressedPayloadIsRejected) {
+  const auto tree = decode_bt(file_bytes("geb079.bt")).tree;
+  ASSERT_TRUE(tree);
+  const auto packed = encode_map(*tree, Encoding::kOctomapBtZstd);
+  auto flipped = packed;
+  flipped[flipped.size() / 2] ^= 0x40;
+  EXPECT_EQ(decode_map(flipped, Encoding::kOctomapBtZstd, {}).error,
+            DecodeError::kDecompressionFailed);
+  auto cut = packed;
+  cut.resize(cut.size() - 100);
+  const DecodeResult r = decode_map(cut, Encoding::kOctomapBtZstd, {});
+  EXPECT_EQ(r.error, DecodeError::kDecompressionFailed) << r.reason;
+  EXPECT_EQ(decode_map(as_bytes("not zstd at all"), Encoding::kOctomapBtZstd, {}).error,
+            DecodeError::kDecompressionFailed);
+}
+
+TEST(Codec, ReadOctreeFileValidatesToo) {
+  EXPECT_THROW(read_octree_file(test::data_path("README.md")), MapError);
+  EXPECT_THROW(read_octree_file(test::data_path("missing.bt")), MapError);
+  const auto tree = read_octree_file(test::data_path("geb079.bt"));
+  EXPECT_DOUBLE_EQ(tree->getResolution(), 0.08);
+}
+
+}  // namespace
+}  // namespace mapmerge
