@@ -1,0 +1,151 @@
+#include "mapmerge/wire/fastdds.hpp"
+
+#include <cstring>
+#include <mutex>
+
+#include <fastdds/dds/domain/DomainParticipantFactory.hpp>
+#include <fastdds/dds/domain/qos/DomainParticipantQos.hpp>
+#include <fastdds/rtps/common/Locator.h>
+#include <fastrtps/utils/IPLocator.h>
+
+namespace mapmerge::wire {
+namespace dds = eprosima::fastdds::dds;
+using eprosima::fastrtps::types::ReturnCode_t;
+
+namespace {
+
+constexpr const char* kStateWriterProfile = "mapmerge_state_writer";
+constexpr const char* kStateReaderProfile = "mapmerge_state_reader";
+constexpr const char* kEventWriterProfile = "mapmerge_event_writer";
+constexpr const char* kEventReaderProfile = "mapmerge_event_reader";
+/// The participant profile a user's XML file (--profile FILE.xml) may define.
+constexpr const char* kUserParticipantProfile = "mapmerge";
+/// Fast DDS's well-known GUID prefix of discovery server 0 (`fastdds discovery -i 0`).
+constexpr const char* kDiscoveryServerPrefix = "44.53.00.5f.45.50.52.4f.53.49.4d.41";
+
+void load_xml(const char* xml, const std::string& what) {
+  auto* factory = dds::DomainParticipantFactory::get_instance();
+  if (factory->load_XML_profiles_string(xml, std::strlen(xml)) != ReturnCode_t::RETCODE_OK) {
+    throw DdsError("Fast DDS rejected the " + what + " profile XML");
+  }
+}
+
+/// Loads the embedded profiles once per process, before any default QoS is read
+/// (Fast DDS silently ignores profiles loaded after get_default_participant_qos()).
+void load_embedded_profiles() {
+  static std::once_flag once;
+  std::call_once(once, [] {
+    load_xml(embedded::kFastddsQos, "mapmerge QoS");
+    load_xml(embedded::kFastddsLocal, "local");
+    load_xml(embedded::kFastddsDefault, "default");
+  });
+}
+
+dds::DomainParticipantQos participant_qos(const ProfileSpec& spec) {
+  auto* factory = dds::DomainParticipantFactory::get_instance();
+  dds::DomainParticipantQos qos;
+  const char* profile = spec.kind == ProfileSpec::Kind::Local ? "mapmerge_local" : "mapmerge_default";
+  if (spec.kind == ProfileSpec::Kind::File) {
+    if (factory->load_XML_profiles_file(spec.file) != ReturnCode_t::RETCODE_OK) {
+      throw DdsError("Fast DDS could not load profile file '" + spec.file + "'");
+    }
+    profile = kUserParticipantProfile;
+    if (factory->get_participant_qos_from_profile(profile, qos) != ReturnCode_t::RETCODE_OK) {
+      qos = factory->get_default_participant_qos();  // the file's default profile, if any
+    }
+    return qos;
+  }
+  if (factory->get_participant_qos_from_profile(profile, qos) != ReturnCode_t::RETCODE_OK) {
+    throw DdsError(std::string("Fast DDS profile '") + profile + "' is missing");
+  }
+  return qos;
+}
+
+void use_discovery_server(dds::DomainParticipantQos& qos, const std::string& address) {
+  const auto colon = address.rfind(':');
+  if (colon == std::string::npos) throw DdsError("discovery server must be HOST:PORT, got '" + address + "'");
+  const std::string host = address.substr(0, colon);
+  const int port = std::atoi(address.c_str() + colon + 1);
+  if (port <= 0 || port > 65535) throw DdsError("bad discovery server port in '" + address + "'");
+  eprosima::fastrtps::rtps::RemoteServerAttributes server;
+  server.ReadguidPrefix(kDiscoveryServerPrefix);
+  eprosima::fastrtps::rtps::Locator_t locator;
+  eprosima::fastrtps::rtps::IPLocator::setIPv4(locator, host);
+  locator.port = static_cast<uint32_t>(port);
+  server.metatrafficUnicastLocatorList.push_back(locator);
+  auto& discovery = qos.wire_protocol().builtin.discovery_config;
+  discovery.discoveryProtocol = eprosima::fastrtps::rtps::DiscoveryProtocol_t::CLIENT;
+  discovery.m_DiscoveryServers.push_back(server);
+  // The server is the only peer: no initial peers list of our own is needed.
+  qos.wire_protocol().builtin.initialPeersList.clear();
+}
+
+}  // namespace
+
+FastddsParticipant::FastddsParticipant(const ParticipantOptions& options,
+                                       dds::DomainParticipantListener* listener,
+                                       const dds::StatusMask& mask) {
+  load_embedded_profiles();
+  dds::DomainParticipantQos qos = participant_qos(options.profile);
+  if (!options.name.empty()) qos.name(options.name);
+  if (!options.profile.discovery_server.empty()) use_discovery_server(qos, options.profile.discovery_server);
+  auto* factory = dds::DomainParticipantFactory::get_instance();
+  participant_ = factory->create_participant(options.domain, qos, listener, mask);
+  if (participant_ == nullptr) {
+    throw DdsError("cannot create Fast DDS participant on domain " + std::to_string(options.domain) +
+                   " with profile " + options.profile.describe());
+  }
+  publisher_ = participant_->create_publisher(dds::PUBLISHER_QOS_DEFAULT);
+  subscriber_ = participant_->create_subscriber(dds::SUBSCRIBER_QOS_DEFAULT);
+  if (publisher_ == nullptr || subscriber_ == nullptr) {
+    participant_->delete_contained_entities();
+    factory->delete_participant(participant_);
+    throw DdsError("cannot create Fast DDS publisher/subscriber");
+  }
+}
+
+FastddsParticipant::~FastddsParticipant() {
+  if (participant_ == nullptr) return;
+  participant_->delete_contained_entities();
+  dds::DomainParticipantFactory::get_instance()->delete_participant(participant_);
+}
+
+dds::Topic* FastddsParticipant::topic(const std::string& name, dds::TypeSupport type) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  auto it = topics_.find(name);
+  if (it != topics_.end()) return it->second;
+  if (participant_->find_type(type.get_type_name()).empty() &&
+      type.register_type(participant_) != ReturnCode_t::RETCODE_OK) {
+    throw DdsError("cannot register type " + type.get_type_name());
+  }
+  dds::Topic* t = participant_->create_topic(name, type.get_type_name(), dds::TOPIC_QOS_DEFAULT);
+  if (t == nullptr) throw DdsError("cannot create topic " + name);
+  topics_.emplace(name, t);
+  return t;
+}
+
+dds::DataWriter* FastddsParticipant::create_writer(dds::Topic* topic, TopicKind kind,
+                                                   dds::DataWriterListener* listener) {
+  const char* profile = kind == TopicKind::State ? kStateWriterProfile : kEventWriterProfile;
+  dds::DataWriter* writer = publisher_->create_datawriter_with_profile(topic, profile, listener);
+  if (writer == nullptr) throw DdsError("cannot create writer on " + topic->get_name());
+  return writer;
+}
+
+dds::DataReader* FastddsParticipant::create_reader(dds::Topic* topic, TopicKind kind,
+                                                   dds::DataReaderListener* listener) {
+  const char* profile = kind == TopicKind::State ? kStateReaderProfile : kEventReaderProfile;
+  dds::DataReader* reader = subscriber_->create_datareader_with_profile(topic, profile, listener);
+  if (reader == nullptr) throw DdsError("cannot create reader on " + topic->get_name());
+  return reader;
+}
+
+void FastddsParticipant::remove(dds::DataWriter* writer) {
+  if (writer != nullptr) publisher_->delete_datawriter(writer);
+}
+
+void FastddsParticipant::remove(dds::DataReader* reader) {
+  if (reader != nullptr) subscriber_->delete_datareader(reader);
+}
+
+}  // namespace mapmerge::wire
