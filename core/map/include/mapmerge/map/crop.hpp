@@ -1,0 +1,22 @@
+#pragma once
+/// Cutting a part out of a map and moving it into another frame: how tests, benchmarks and the
+/// demo make partial robot maps with a known ground-truth transform from one real map.
+
+#include <memory>
+
+#include <Eigen/Geometry>
+#include <octomap/OcTree.h>
+
+namespace mapmerge {
+
+/// A transform from roll, pitch, yaw (radians) and a translation: T = [Rz(yaw)·Ry(pitch)·Rx(roll) | t].
+Eigen::Isometry3d make_transform(double x, double y, double z, double roll, double pitch, double yaw);
+
+/// The leaves of `tree` (occupied and free, pruned leaves expanded to full resolution) whose
+/// centres lie inside `box`, each centre p moved to T_out_in·p, in a new tree of the same
+/// resolution and log-odds. Returns an empty tree when nothing lies inside the box.
+std::unique_ptr<octomap::OcTree> crop_and_transform(const octomap::OcTree& tree,
+                                                    const Eigen::AlignedBox3d& box,
+                                                    const Eigen::Isometry3d& T_out_in);
+
+}  // namespace mapmerge

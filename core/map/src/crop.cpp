@@ -1,0 +1,50 @@
+#include "mapmerge/map/crop.hpp"
+
+namespace mapmerge {
+
+Eigen::Isometry3d make_transform(double x, double y, double z, double roll, double pitch, double yaw) {
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear() = (Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()) *
+                Eigen::AngleAxisd(pitch, Eigen::Vector3d::UnitY()) *
+                Eigen::AngleAxisd(roll, Eigen::Vector3d::UnitX()))
+                   .toRotationMatrix();
+  T.translation() = Eigen::Vector3d(x, y, z);
+  return T;
+}
+
+std::unique_ptr<octomap::OcTree> crop_and_transform(const octomap::OcTree& tree,
+                                                    const Eigen::AlignedBox3d& box,
+                                                    const Eigen::Isometry3d& T_out_in) {
+  const double res = tree.getResolution();
+  auto out = std::make_unique<octomap::OcTree>(res);
+  out->setClampingThresMin(tree.getClampingThresMin());
+  out->setClampingThresMax(tree.getClampingThresMax());
+  out->setOccupancyThres(tree.getOccupancyThres());
+  const octomap::point3d bmin(static_cast<float>(box.min().x()), static_cast<float>(box.min().y()),
+                              static_cast<float>(box.min().z()));
+  const octomap::point3d bmax(static_cast<float>(box.max().x()), static_cast<float>(box.max().y()),
+                              static_cast<float>(box.max().z()));
+  for (auto it = tree.begin_leafs_bbx(bmin, bmax), end = tree.end_leafs_bbx(); it != end; ++it) {
+    const float value = it->getLogOdds();
+    const double size = it.getSize();
+    const int cells = static_cast<int>(size / res + 0.5);
+    const octomap::point3d c = it.getCoordinate();
+    const double first = -0.5 * size + 0.5 * res;
+    for (int i = 0; i < cells; ++i) {
+      for (int j = 0; j < cells; ++j) {
+        for (int k = 0; k < cells; ++k) {
+          const Eigen::Vector3d p(c.x() + first + i * res, c.y() + first + j * res, c.z() + first + k * res);
+          if (!box.contains(p)) continue;
+          const Eigen::Vector3d q = T_out_in * p;
+          out->setNodeValue(static_cast<float>(q.x()), static_cast<float>(q.y()), static_cast<float>(q.z()),
+                            value, /*lazy_eval=*/true);
+        }
+      }
+    }
+  }
+  out->updateInnerOccupancy();
+  out->prune();
+  return out;
+}
+
+}  // namespace mapmerge
