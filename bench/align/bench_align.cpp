@@ -1,0 +1,336 @@
+// Accuracy/speed bench of mapmerge::align (issue 3). Cuts a real map into two parts with a
+// chosen overlap (share of the map's occupied voxels), moves one by a known transform T_R,
+// aligns, and prints the paper's Table 1 columns plus rotation/translation error, accepted,
+// success (RE < 5 deg and TE < 0.3 m) and wrong merges (accepted but not a success).
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <iostream>
+#include <map>
+#include <random>
+#include <sstream>
+
+#include <CLI/CLI.hpp>
+#include <Eigen/Geometry>
+
+#include "mapmerge/align/align.hpp"
+#include "mapmerge/align/map_cut.hpp"
+#include "mapmerge/map/map_io.hpp"
+
+namespace ma = mapmerge::align;
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+double ms_since(Clock::time_point t0) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+}
+
+struct Pose {  ///< T_R in the paper's format
+  double x, y, z, roll, pitch, yaw;
+  Eigen::Matrix4d matrix() const { return ma::make_transform(x, y, z, roll, pitch, yaw); }
+  std::string str() const {
+    char b[96];
+    std::snprintf(b, sizeof b, "(%.1f, %.1f, %.1f, %.0f°, %.0f°, %.0f°)", x, y, z, roll, pitch, yaw);
+    return b;
+  }
+};
+
+struct Variant {
+  std::string name;
+  ma::AlignConfig config;
+};
+
+struct Row {
+  std::string map, variant, pose;
+  std::size_t n1 = 0, n2 = 0;
+  double overlap = 0, fitness = 0, t_err = 0, rot_err = 0, trans_err = 0, time_ms = 0;
+  bool accepted = false, success = false;
+  std::string reason;
+};
+
+struct Errors {
+  double t_err, rot_deg, trans_m;
+};
+
+/// T_R maps target (world) points into the source frame: T_source_target = T_R.
+Errors errors(const Eigen::Matrix4d& T_est_target_source, const Eigen::Matrix4d& T_R) {
+  const Eigen::Matrix4d T_est = T_est_target_source.inverse();  // estimate of T_R
+  Errors e{};
+  e.t_err = (T_est * T_R.inverse() - Eigen::Matrix4d::Identity()).norm();
+  const Eigen::Matrix3d dR = T_est.topLeftCorner<3, 3>() * T_R.topLeftCorner<3, 3>().transpose();
+  e.rot_deg = std::acos(std::clamp((dR.trace() - 1.0) / 2.0, -1.0, 1.0)) * 180.0 / M_PI;
+  const Eigen::Matrix4d T_true_ts = T_R.inverse();
+  e.trans_m = (T_est_target_source.topRightCorner<3, 1>() - T_true_ts.topRightCorner<3, 1>()).norm();
+  return e;
+}
+
+std::vector<Variant> make_variants(const ma::AlignConfig& base, bool all) {
+  std::vector<Variant> v{{"default", base}};
+  if (!all) return v;
+  for (auto [mname, method] : {std::pair{"SAC", ma::MatchMethod::kRansac}, std::pair{"GCC", ma::MatchMethod::kGcc}})
+    for (auto [rname, refine] : {std::pair{"ICP", ma::RefineMethod::kIcp}, std::pair{"OICP", ma::RefineMethod::kOicp},
+                                 std::pair{"NDT", ma::RefineMethod::kNdt}})
+      for (bool div : {true, false}) {
+        ma::AlignConfig c = base;
+        c.match.method = method;
+        c.refine.method = refine;
+        c.submodels.enabled = div;
+        v.push_back({std::string(mname) + "+" + rname + (div ? "_DIV" : ""), c});
+      }
+  ma::AlignConfig c = base;
+  c.match.method = ma::MatchMethod::kSacIa;
+  v.push_back({"SAC-IA(PCL)+OICP", c});
+  c.match.method = ma::MatchMethod::kPrerejective;
+  v.push_back({"PREREJ(PCL)+OICP", c});
+  c = base;
+  c.describe.method = ma::Descriptor::kShot;
+  v.push_back({"SHOT+SAC+OICP", c});
+  return v;
+}
+
+/// Preparation depends only on stages 1-5: share it between variants with equal settings.
+std::string prep_key(const ma::AlignConfig& c) {
+  return std::string(ma::to_string(c.describe.method)) + std::to_string(c.preprocess.voxel_size) +
+         std::to_string(c.describe.radius) + std::to_string(c.keypoints.salient_radius);
+}
+
+struct Prepared {
+  ma::PreparedMap map;
+  double ms = 0;
+};
+
+Prepared prepare(const octomap::OcTree& tree, const ma::AlignConfig& c) {
+  const auto t0 = Clock::now();
+  Prepared p{ma::prepare_map(tree, c), 0};
+  p.ms = ms_since(t0);
+  return p;
+}
+
+Row run_case(const std::string& map, const Prepared& target, const Prepared& source,
+             const Variant& v, const Pose& pose, double overlap) {
+  const auto t0 = Clock::now();
+  const ma::AlignResult r = ma::align(target.map, source.map, v.config);
+  const double align_ms = ms_since(t0);
+  Row row;
+  row.map = map;
+  row.variant = v.name;
+  row.pose = pose.str();
+  row.n1 = target.map.num_points();
+  row.n2 = source.map.num_points();
+  row.overlap = overlap;
+  row.accepted = r.accepted;
+  row.fitness = r.fitness;
+  row.reason = r.reason;
+  // Two preparations run in parallel in `mapmerge merge`: count the slower one.
+  row.time_ms = std::max(target.ms, source.ms) + align_ms;
+  if (r.accepted) {
+    const Errors e = errors(r.T_target_source, pose.matrix());
+    row.t_err = e.t_err;
+    row.rot_err = e.rot_deg;
+    row.trans_err = e.trans_m;
+    row.success = e.rot_deg < 5.0 && e.trans_m < 0.3;
+  }
+  return row;
+}
+
+double quantile(std::vector<double> v, double q) {
+  if (v.empty()) return std::nan("");
+  std::sort(v.begin(), v.end());
+  const auto i = static_cast<std::size_t>(std::min<double>(v.size() - 1, q * (v.size() - 1) + 0.5));
+  return v[i];
+}
+
+std::string fmt(double v, int prec = 3) {
+  if (std::isnan(v)) return "-";
+  if (std::isinf(v)) return "inf";
+  char b[32];
+  std::snprintf(b, sizeof b, "%.*f", prec, v);
+  return b;
+}
+
+void print_rows(std::ostream& out, const std::vector<Row>& rows) {
+  out << "| map | variant | n1 | n2 | T_R (x,y,z,R,P,Y) | r | f_s [m] | T_err | rot err [deg] | trans err [m] | accepted | success | t [s] |\n"
+      << "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
+  for (const Row& r : rows) {
+    out << "| " << r.map << " | " << r.variant << " | " << r.n1 / 1000 << "k | " << r.n2 / 1000 << "k | "
+        << r.pose << " | " << fmt(r.overlap * 100, 0) << "% | "
+        << (r.accepted ? fmt(r.fitness, 4) : "-") << " | " << (r.accepted ? fmt(r.t_err) : "-") << " | "
+        << (r.accepted ? fmt(r.rot_err, 2) : "-") << " | " << (r.accepted ? fmt(r.trans_err) : "-")
+        << " | " << (r.accepted ? "yes" : "no") << " | "
+        << (r.success ? "yes" : (r.accepted ? "**WRONG**" : "no")) << " | " << fmt(r.time_ms / 1000.0, 2)
+        << " |\n";
+  }
+}
+
+void print_summary(std::ostream& out, const std::vector<Row>& rows) {
+  std::map<std::pair<std::string, int>, std::vector<const Row*>> groups;
+  std::vector<std::string> order;
+  for (const Row& r : rows) {
+    if (std::find(order.begin(), order.end(), r.variant) == order.end()) order.push_back(r.variant);
+    groups[{r.variant, static_cast<int>(std::lround(r.overlap * 100))}].push_back(&r);
+  }
+  out << "| variant | r | cases | success | accepted | wrong merges | median T_err | p95 T_err | median rot [deg] | median trans [m] | median t [s] |\n"
+      << "|---|---|---|---|---|---|---|---|---|---|---|\n";
+  for (const std::string& name : order)
+    for (const auto& [key, list] : groups) {
+      if (key.first != name) continue;
+      std::vector<double> terr, rot, trans, time;
+      std::size_t ok = 0, acc = 0, wrong = 0;
+      for (const Row* r : list) {
+        ok += r->success;
+        acc += r->accepted;
+        wrong += r->accepted && !r->success;
+        if (r->success) {
+          terr.push_back(r->t_err);
+          rot.push_back(r->rot_err);
+          trans.push_back(r->trans_err);
+        }
+        time.push_back(r->time_ms / 1000.0);
+      }
+      const double n = static_cast<double>(list.size());
+      out << "| " << name << " | " << key.second << "% | " << list.size() << " | " << fmt(100.0 * ok / n, 0)
+          << "% | " << fmt(100.0 * acc / n, 0) << "% | " << wrong << " | " << fmt(quantile(terr, 0.5))
+          << " | " << fmt(quantile(terr, 0.95)) << " | " << fmt(quantile(rot, 0.5), 2) << " | "
+          << fmt(quantile(trans, 0.5)) << " | " << fmt(quantile(time, 0.5), 2) << " |\n";
+    }
+}
+
+/// x (or y) positions splitting the occupied voxels so that the two parts share `overlap`.
+std::pair<double, double> cut_positions(const octomap::OcTree& tree, int axis, double overlap) {
+  std::vector<double> coords;
+  const double res = tree.getResolution();
+  for (auto it = tree.begin_leafs(); it != tree.end_leafs(); ++it) {
+    if (!tree.isNodeOccupied(*it)) continue;
+    const int n = static_cast<int>(it.getSize() / res + 0.5);
+    const double c = it.getCoordinate()(axis);
+    for (int i = 0; i < n; ++i)
+      coords.insert(coords.end(), static_cast<std::size_t>(n * n), c - it.getSize() / 2 + res * (i + 0.5));
+  }
+  std::sort(coords.begin(), coords.end());
+  auto at = [&](double q) { return coords[static_cast<std::size_t>(q * (coords.size() - 1))]; };
+  return {at((1.0 - overlap) / 2.0), at((1.0 + overlap) / 2.0)};
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"mapmerge_bench_align: alignment accuracy and speed on real maps"};
+  std::string map_path = std::string(MAPMERGE_DATA_DIR) + "/fr_079.bt";
+  std::string config_path, out_path, write_pair;
+  std::vector<int> overlaps{10, 15, 20, 30, 40};
+  int trials = 12, variant_trials = 2, coarsen = 1, axis = 0;
+  unsigned seed = 1;
+  bool quick = false, all_variants = false, paper_pair = false;
+  double max_translation = 10.0, max_tilt = 5.0;
+  app.add_option("--map", map_path, "real map (.bt/.ot)");
+  app.add_option("--config", config_path, "YAML config of the default variant");
+  app.add_option("--overlaps", overlaps, "overlaps [%]")->delimiter(',');
+  app.add_option("--trials", trials, "random transforms per overlap (default variant)");
+  app.add_option("--variant-trials", variant_trials, "of those, how many also run every variant");
+  app.add_option("--coarsen", coarsen, "coarsen the map by this factor first (e.g. 4: 5 cm -> 20 cm)");
+  app.add_option("--axis", axis, "cut along x (0) or y (1)");
+  app.add_option("--seed", seed, "random seed of the transforms");
+  app.add_option("--max-translation", max_translation, "|x|,|y| of T_R up to this [m]");
+  app.add_option("--max-tilt", max_tilt, "|roll|,|pitch| of T_R up to this [deg]");
+  app.add_option("--out", out_path, "also write the Markdown report here");
+  app.add_option("--write-pair", write_pair, "write the paper's pair as DIR/scene.bt and DIR/model.bt and exit");
+  app.add_flag("--quick", quick, "two overlaps, three transforms, default variant");
+  app.add_flag("--all-variants", all_variants, "SAC/GCC x ICP/OICP/NDT x DIV/plain and the PCL/SHOT variants");
+  app.add_flag("--paper-pair", paper_pair, "also run the paper's own pair (fr_079 only)");
+  CLI11_PARSE(app, argc, argv);
+  if (quick) {
+    overlaps = {15, 30};
+    trials = 3;
+    all_variants = false;
+  }
+  try {
+    const ma::AlignConfig base = config_path.empty() ? ma::AlignConfig{} : ma::load_align_config(config_path);
+    std::unique_ptr<octomap::OcTree> tree = mapmerge::read_octree_file(map_path);
+    if (coarsen > 1) tree = ma::coarsen(*tree, coarsen);
+    std::string name = map_path.substr(map_path.find_last_of('/') + 1);
+    if (coarsen > 1) name += " @" + fmt(tree->getResolution(), 2) + "m";
+    const std::vector<Variant> variants = make_variants(base, all_variants);
+    std::vector<Row> rows;
+    std::mt19937 rng(seed);
+    std::uniform_real_distribution<double> yaw(-180.0, 180.0), tilt(-max_tilt, max_tilt),
+        shift(-max_translation, max_translation), lift(-0.5, 0.5);
+
+    const Pose paper{12, 6, 0.5, 5, 5, 60};
+    if (!write_pair.empty() || paper_pair) {
+      const Eigen::AlignedBox3d scene_box(Eigen::Vector3d(-10, -10, 0), Eigen::Vector3d(2, 10, 2));
+      const Eigen::AlignedBox3d model_box(Eigen::Vector3d(-2, -10, 0), Eigen::Vector3d(10, 10, 2));
+      auto scene = ma::cut_and_move(*tree, scene_box, Eigen::Matrix4d::Identity());
+      auto model = ma::cut_and_move(*tree, model_box, paper.matrix());
+      if (!write_pair.empty()) {
+        mapmerge::write_octree_file(*scene, write_pair + "/scene.bt");
+        mapmerge::write_octree_file(*model, write_pair + "/model.bt");
+        std::cout << "wrote " << write_pair << "/scene.bt and model.bt\n";
+        return 0;
+      }
+      const Eigen::AlignedBox3d both(Eigen::Vector3d(-2, -10, 0), Eigen::Vector3d(2, 10, 2));
+      const Eigen::AlignedBox3d all(Eigen::Vector3d(-10, -10, 0), Eigen::Vector3d(10, 10, 2));
+      const double r = double(ma::count_occupied(*tree, both)) / double(ma::count_occupied(*tree, all));
+      std::map<std::string, std::pair<Prepared, Prepared>> cache;
+      for (const Variant& v : variants) {
+        auto& slot = cache[prep_key(v.config)];
+        if (slot.first.map.empty()) slot = {prepare(*scene, v.config), prepare(*model, v.config)};
+        rows.push_back(run_case("paper pair", slot.first, slot.second, v, paper, r));
+        std::cerr << rows.back().variant << " paper pair: " << (rows.back().success ? "ok" : rows.back().reason) << "\n";
+      }
+    }
+
+    double lo_all[3], hi_all[3];
+    tree->getMetricMin(lo_all[0], lo_all[1], lo_all[2]);
+    tree->getMetricMax(hi_all[0], hi_all[1], hi_all[2]);
+    for (int pct : overlaps) {
+      const auto [cut_lo, cut_hi] = cut_positions(*tree, axis, pct / 100.0);
+      Eigen::AlignedBox3d target_box(Eigen::Vector3d(lo_all[0], lo_all[1], lo_all[2]) - Eigen::Vector3d::Constant(1),
+                                     Eigen::Vector3d(hi_all[0], hi_all[1], hi_all[2]) + Eigen::Vector3d::Constant(1));
+      Eigen::AlignedBox3d source_box = target_box;
+      target_box.max()(axis) = cut_hi;
+      source_box.min()(axis) = cut_lo;
+      auto target = ma::cut_and_move(*tree, target_box, Eigen::Matrix4d::Identity());
+      std::map<std::string, Prepared> target_cache;
+      for (int t = 0; t < trials; ++t) {
+        const Pose pose{shift(rng), shift(rng), lift(rng), tilt(rng), tilt(rng), yaw(rng)};
+        auto source = ma::cut_and_move(*tree, source_box, pose.matrix());
+        std::map<std::string, Prepared> source_cache;
+        const std::size_t nv = t < variant_trials ? variants.size() : 1;
+        for (std::size_t vi = 0; vi < nv; ++vi) {
+          const Variant& v = variants[vi];
+          const std::string key = prep_key(v.config);
+          if (!target_cache.count(key)) target_cache[key] = prepare(*target, v.config);
+          if (!source_cache.count(key)) source_cache[key] = prepare(*source, v.config);
+          rows.push_back(run_case(name, target_cache[key], source_cache[key], v, pose, pct / 100.0));
+          const Row& r = rows.back();
+          std::cerr << pct << "% " << pose.str() << " " << v.name << ": "
+                    << (r.success ? "ok" : (r.accepted ? "WRONG" : "rejected (" + r.reason + ")"))
+                    << " rot " << fmt(r.rot_err, 2) << " trans " << fmt(r.trans_err) << " t "
+                    << fmt(r.time_ms / 1000, 2) << "s\n";
+        }
+      }
+    }
+    std::ostringstream md;
+    md << "# Alignment bench: " << name << "\n\n"
+       << "Generated by `mapmerge_bench_align` (bench/align). Each case cuts the map into a target part and a "
+          "source part sharing r of the occupied voxels, moves the source by T_R (yaw uniform over the full "
+          "circle, roll/pitch up to " << fmt(max_tilt, 0) << "°, |x|,|y| up to " << fmt(max_translation, 0)
+       << " m) and aligns it. T_err = ||T_est·T_R^-1 − I||_F; success = rot err < 5° and trans err < 0.3 m; "
+          "a wrong merge is an accepted result that is not a success. t = slower map preparation + align "
+          "(the two preparations run in parallel in `mapmerge merge`; file I/O excluded). T_err and errors "
+          "in the summary are over successful cases.\n\n## Summary\n\n";
+    print_summary(md, rows);
+    md << "\n## Cases\n\n";
+    print_rows(md, rows);
+    std::cout << md.str();
+    if (!out_path.empty()) {
+      std::ofstream f(out_path);
+      f << md.str();
+    }
+  } catch (const std::exception& e) {
+    std::cerr << "mapmerge_bench_align: " << e.what() << "\n";
+    return 1;
+  }
+  return 0;
+}

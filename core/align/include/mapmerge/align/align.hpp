@@ -1,0 +1,101 @@
+#pragma once
+/// Map alignment (issue 3): find T_target_source between two OctoMaps.
+///
+///   prepare_map(tree)  once per robot map: points, filtered cloud, keypoints, descriptors
+///   align(t, s)        global search (no initial guess), validated; used once per pair
+///   refine(t, s, T0)   local only, from a known transform; used when a map grows
+///
+/// "No alignment" is a value (AlignResult::accepted == false with a reason), never an exception.
+
+#include <cstddef>
+#include <limits>
+#include <memory>
+#include <string>
+
+#include <Eigen/Core>
+#include <octomap/OcTree.h>
+
+#include "mapmerge/align/config.hpp"
+
+namespace mapmerge::align {
+
+/// Wall time of each stage [ms]. Preparation stages add up both maps' times.
+struct StageTimings {
+  double to_points_ms = 0.0;
+  double preprocess_ms = 0.0;
+  double keypoints_ms = 0.0;
+  double describe_ms = 0.0;
+  double submodels_ms = 0.0;  ///< block extraction and all blocks' hypothesis generation
+  double match_ms = 0.0;      ///< descriptor correspondences
+  double validate_ms = 0.0;
+  double refine_ms = 0.0;
+  double total_ms = 0.0;      ///< wall time of the whole call
+};
+
+/// Quality of one transform, as measured by the validation stage.
+struct Validation {
+  double fitness = std::numeric_limits<double>::infinity();  ///< Eq. 6 [m]; +inf if fewer than n_th pairs
+  std::size_t inliers = 0;      ///< n_w of Eq. 8, both directions [count]
+  std::size_t conflicts = 0;    ///< points landing in the other map's known free space [count]
+  std::size_t checked = 0;      ///< points tested, both directions [count]
+  double overlap = 0.0;         ///< (inliers + conflicts) / checked: share seen by both maps [0..1]
+  double inlier_share = 0.0;    ///< inliers / (inliers + conflicts) [0..1]
+  double inlier_fraction = 0.0;  ///< inliers / checked [0..1]
+};
+
+struct AlignResult {
+  bool accepted = false;        ///< a transform passed validation
+  Eigen::Matrix4d T_target_source = Eigen::Matrix4d::Identity();  ///< maps source points into the target frame
+  double fitness = std::numeric_limits<double>::infinity();  ///< Eq. 6 of the final transform [m]
+  std::size_t inliers = 0;      ///< pairs closer than d_th [count]
+  double overlap = 0.0;         ///< estimated share of points seen by both maps [0..1]
+  double inlier_share = 0.0;    ///< inliers / (inliers + contradictions) [0..1]
+  int submodel = -1;            ///< winning block in spiral order; -1 whole map / none
+  std::size_t hypotheses = 0;   ///< raw hypotheses generated [count]
+  std::string reason;           ///< why not accepted (empty when accepted)
+  StageTimings timings;
+};
+
+/// One map made ready for alignment: owns its points, filtered cloud, keypoints, descriptors
+/// and a copy of the octree (free space for the contradiction test). Cheap to copy (shared),
+/// immutable, safe to use from several threads.
+class PreparedMap {
+ public:
+  struct Impl;
+  PreparedMap();
+  explicit PreparedMap(std::shared_ptr<const Impl> impl);
+  double resolution() const;
+  std::size_t num_points() const;     ///< occupied voxels (stage 1) [count]
+  std::size_t num_filtered() const;   ///< after preprocessing [count]
+  std::size_t num_keypoints() const;  ///< with a valid descriptor [count]
+  const StageTimings& timings() const;  ///< stages 1, 2, 4, 5 of this map
+  const Impl& impl() const;
+  bool empty() const { return impl_ == nullptr; }
+
+ private:
+  std::shared_ptr<const Impl> impl_;
+};
+
+/// Stages 1, 2, 4, 5 for one map. Throws std::invalid_argument for an unusable map (no
+/// occupied voxel) or config.
+PreparedMap prepare_map(const octomap::OcTree& tree, const AlignConfig& config);
+
+/// Global search: stages 3, 6, 7, 8. Never throws for "no alignment".
+AlignResult align(const PreparedMap& target, const PreparedMap& source, const AlignConfig& config);
+
+/// Local only: stage 8 from T_target_source_init, then stage 7 on the result.
+AlignResult refine(const PreparedMap& target, const PreparedMap& source,
+                   const Eigen::Matrix4d& T_target_source_init, const AlignConfig& config);
+
+/// Validation of a given transform (stage 7) without changing it.
+Validation validate(const PreparedMap& target, const PreparedMap& source,
+                    const Eigen::Matrix4d& T_target_source, const AlignConfig& config);
+
+/// prepare_map for both (in parallel) then align.
+AlignResult align_maps(const octomap::OcTree& target, const octomap::OcTree& source,
+                       const AlignConfig& config);
+
+/// JSON object of the stage timings, e.g. {"to_points_ms": 3.1, ...}.
+std::string timings_json(const StageTimings& t);
+
+}  // namespace mapmerge::align

@@ -1,0 +1,152 @@
+#pragma once
+/// Settings of every stage of the alignment pipeline (issue 3). Plain structs, one per stage.
+/// Lengths are multiples of the map resolution ("x res"), so the same defaults serve maps at
+/// 2 cm, 5 cm and 20 cm; absolute units are named where they are used.
+
+#include <cstddef>
+#include <limits>
+#include <stdexcept>
+#include <string>
+
+namespace mapmerge::align {
+
+/// Stage 1: octree -> occupied points.
+struct ToPointsConfig {
+  double min_occupancy = 0.0;  ///< extra floor on a leaf's occupancy probability [0..1]; 0 = the tree's own threshold only
+  std::size_t max_points = 20'000'000;  ///< refuse maps whose expanded occupied voxels exceed this [points]
+};
+
+/// Stage 2: pass-through, ground removal, voxel grid, statistical outlier removal.
+struct PreprocessConfig {
+  bool pass_through = false;  ///< keep only points with z in [z_min, z_max]
+  double z_min = -std::numeric_limits<double>::infinity();  ///< pass-through lower limit [m, map frame]
+  double z_max = std::numeric_limits<double>::infinity();   ///< pass-through upper limit [m, map frame]
+  bool remove_ground = false;      ///< remove the dominant near-horizontal plane (the paper: ground has no features)
+  double ground_distance = 1.5;    ///< plane inlier distance [x res]
+  double ground_max_tilt_deg = 10.0;  ///< largest angle between plane normal and z for a ground plane [deg]
+  double voxel_size = 2.5;         ///< voxel-grid leaf before describing [x res]
+  bool outlier_removal = true;     ///< statistical outlier removal on/off
+  int outlier_mean_k = 8;          ///< neighbours for the statistical outlier removal [points]
+  double outlier_stddev = 3.0;     ///< rejection threshold [standard deviations of the mean distance]
+  double normal_radius = 6.0;      ///< radius of the normal estimation [x res]
+  bool orient_normals_to_free = true;  ///< flip normals towards the octree's known free space
+};
+
+/// Stage 3: model extraction (submodels) from the source map.
+struct SubmodelConfig {
+  bool enabled = false;          ///< true: divide the source into blocks (the paper's *_DIV); false: whole map
+  double block_size = 60.0;      ///< block edge in x and y [x res] (3 m at 5 cm, the paper's value)
+  bool grid_3d = false;          ///< divide along z as well (multi-level maps)
+  double block_height = 60.0;    ///< block edge in z when grid_3d [x res]
+  double block_overlap = 0.5;    ///< share of a block shared with its neighbour [0..0.9]
+  std::size_t min_keypoints = 12;   ///< blocks with fewer source keypoints are skipped [points]
+  bool early_stop = true;        ///< stop launching blocks once a hypothesis is good enough
+  double early_stop_inlier_share = 0.8;  ///< inliers / (inliers + contradictions) that counts as good enough [0..1]
+  int threads = 0;               ///< worker threads for blocks (0 = TBB default)
+};
+
+/// Stage 4: ISS keypoints (Eq. 1-3).
+struct KeypointConfig {
+  double salient_radius = 6.0;   ///< support radius of the scatter matrix [x res]
+  double non_max_radius = 4.0;   ///< non-maximum suppression radius [x res]
+  double gamma_21 = 0.975;       ///< upper bound on lambda2/lambda1 (largest first, PCL convention) [ratio]
+  double gamma_32 = 0.975;       ///< upper bound on lambda3/lambda2 [ratio]
+  int min_neighbors = 5;         ///< minimum support size [points]
+  int threads = 1;               ///< OpenMP threads inside ISS
+};
+
+enum class Descriptor { kFpfh, kShot };
+
+/// Stage 5: local descriptors at the keypoints.
+struct DescribeConfig {
+  Descriptor method = Descriptor::kFpfh;  ///< FPFH (33 bins) or SHOT (352 bins, the paper's)
+  double radius = 12.0;          ///< descriptor support radius [x res]
+  int threads = 1;               ///< OpenMP threads inside the descriptor estimation
+};
+
+enum class MatchMethod { kRansac, kSacIa, kPrerejective, kGcc };
+
+/// Stage 6: correspondences and global hypotheses.
+struct MatchConfig {
+  MatchMethod method = MatchMethod::kRansac;  ///< kRansac: prerejective RANSAC on feature correspondences (fast);
+                                              ///< kSacIa / kPrerejective: PCL's SAC-IA / SampleConsensusPrerejective; kGcc: geometric consistency
+  int k_nearest = 3;             ///< target candidates per source keypoint in descriptor space [count]
+  bool mutual = false;           ///< keep only mutual nearest neighbours (then k_nearest = 1)
+  std::size_t max_correspondences = 3000;  ///< cap, best descriptor distance first [count]
+  int iterations = 20000;        ///< RANSAC / SAC-IA / prerejective iterations [count]
+  double edge_similarity = 0.9;  ///< prerejection: edge-length ratio of sampled triangles [0..1]
+  double min_edge = 6.0;         ///< sampled keypoints at least this far apart [x res]
+  double inlier_distance = 5.0;  ///< correspondence inlier distance for hypothesis scoring [x res]
+  std::size_t min_consensus = 5;  ///< a hypothesis needs this many consistent correspondences [count]
+  std::size_t max_hypotheses = 8;  ///< distinct hypotheses kept per submodel [count]
+  double gc_size = 4.0;          ///< GCC consensus set resolution [x res]
+  int gc_threshold = 5;          ///< GCC minimum cluster size [correspondences]
+};
+
+/// Stage 7: hypothesis validation (Eq. 6-8) plus octree contradiction checks.
+struct ValidateConfig {
+  double d_th = 2.0;             ///< pair distance counted in the fitness, Eq. 7 [x res]
+  std::size_t n_th = 100;        ///< fewest pairs for a finite fitness, Eq. 8 [count]
+  double min_inlier_fraction = 0.03;  ///< inliers / points of the smaller map, floor [0..1]
+  double max_fitness = 0.8;      ///< accepted only if the fitness is below [x res]
+  double conflict_distance = 3.0;  ///< a point further than this from any occupied point and inside
+                                   ///< the other map's known free space contradicts the transform [x res]
+  double min_inlier_share = 0.6;  ///< inliers / (inliers + contradictions) to accept [0..1]
+  double ambiguity_ratio = 0.85;  ///< reject when a distinct hypothesis scores at least this share of the best [0..1]
+  double distinct_rotation_deg = 5.0;  ///< hypotheses differing more than this are distinct [deg]
+  double distinct_translation = 10.0;  ///< ... or more than this [x res]
+  std::size_t coarse_points = 1500;  ///< points sampled for the quick check of raw hypotheses [count]
+  std::size_t refine_candidates = 4;  ///< best raw hypotheses refined and strictly validated [count]
+};
+
+enum class RefineMethod { kIcp, kOicp, kNdt, kNone };
+
+/// Stage 8: local alignment on the target cropped to the source box inflated by d_m.
+struct RefineConfig {
+  RefineMethod method = RefineMethod::kOicp;  ///< ICP, occupancy-weighted ICP, NDT, or none
+  bool point_to_plane = true;    ///< ICP/OICP objective: point-to-plane (else point-to-point)
+  int max_iterations = 30;       ///< ICP/NDT iterations [count]
+  double max_correspondence = 4.0;  ///< ICP pair distance, first iteration [x res]
+  double final_correspondence = 2.0;  ///< ICP pair distance reached by the last iterations [x res]
+  double crop_margin = 10.0;     ///< d_m: inflation of the source box when cropping the target [x res]
+  double convergence_translation = 0.01;  ///< stop when an update moves less than this [x res]
+  double convergence_rotation_deg = 0.01;  ///< ... and rotates less than this [deg]
+  std::size_t max_points = 6000;  ///< source points used by ICP (subsampled) [count]
+  double ndt_resolution = 8.0;   ///< NDT cell size [x res]
+  double ndt_step = 4.0;         ///< NDT More-Thuente step size [x res]
+};
+
+/// Every stage's settings. `load_align_config` reads it from YAML; `dump_*` write it.
+struct AlignConfig {
+  ToPointsConfig points;
+  PreprocessConfig preprocess;
+  SubmodelConfig submodels;
+  KeypointConfig keypoints;
+  DescribeConfig describe;
+  MatchConfig match;
+  ValidateConfig validate;
+  RefineConfig refine;
+  unsigned seed = 42;            ///< random seed of the sample-consensus stages
+};
+
+/// Error in a configuration file (unknown key, wrong type, bad value): clear message.
+class ConfigError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+/// Reads a YAML file whose sections mirror AlignConfig (`preprocess: {voxel_size: 3}`); keys not
+/// given keep their defaults; unknown keys or bad values throw ConfigError.
+AlignConfig load_align_config(const std::string& yaml_path);
+/// Same from YAML text.
+AlignConfig parse_align_config(const std::string& yaml_text);
+/// Throws ConfigError when a value is out of its range.
+void check_align_config(const AlignConfig& config);
+std::string dump_align_config_yaml(const AlignConfig& config);
+std::string dump_align_config_json(const AlignConfig& config);
+
+const char* to_string(Descriptor d);
+const char* to_string(MatchMethod m);
+const char* to_string(RefineMethod m);
+
+}  // namespace mapmerge::align

@@ -1,0 +1,506 @@
+// Stages 3, 7, 8 and the orchestration of align / refine (PCL translation unit 3 of 3).
+#include <atomic>
+#include <chrono>
+#include <mutex>
+#include <sstream>
+
+#include <Eigen/Cholesky>
+#include <Eigen/Geometry>
+#include <pcl/registration/ndt.h>
+#include <tbb/global_control.h>
+#include <tbb/parallel_for.h>
+#include <tbb/parallel_invoke.h>
+#include <tbb/parallel_reduce.h>
+#include <tbb/task_arena.h>
+
+#include "mapmerge/align/stages.hpp"
+#include "prepared_map_impl.hpp"
+
+namespace mapmerge::align {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+double ms_since(Clock::time_point t0) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+}
+
+/// Adds elapsed milliseconds to a shared counter from several threads.
+void add_ms(std::atomic<double>& total, Clock::time_point t0) {
+  double cur = total.load();
+  const double add = ms_since(t0);
+  while (!total.compare_exchange_weak(cur, cur + add)) {
+  }
+}
+
+double scale_of(const PreparedMap::Impl& a, const PreparedMap::Impl& b) {
+  return std::max(a.resolution, b.resolution);
+}
+
+// ---------------------------------------------------------------------------------------
+// Stage 7: validation.
+
+struct Counts {
+  std::size_t inliers = 0, conflicts = 0, checked = 0;
+  double sum = 0.0;
+};
+
+/// Points of `from` (every `step`-th, full resolution) moved by T_to_from into `to`.
+Counts check_direction(const PreparedMap::Impl& from, const PreparedMap::Impl& to,
+                       const Eigen::Matrix4d& T_to_from, std::size_t samples,
+                       const ValidateConfig& c, double res) {
+  const Eigen::Matrix4f T = T_to_from.cast<float>();
+  const std::size_t n = from.full->size();
+  const std::size_t step = std::max<std::size_t>(1, n / std::max<std::size_t>(1, samples));
+  const double d_th = c.d_th * res, d_conflict = c.conflict_distance * res;
+  return tbb::parallel_reduce(
+      tbb::blocked_range<std::size_t>(0, (n + step - 1) / step, 256), Counts{},
+      [&](const tbb::blocked_range<std::size_t>& r, Counts acc) {
+        pcl::Indices idx(1);
+        std::vector<float> d2(1);
+        for (std::size_t s = r.begin(); s < r.end(); ++s) {
+          Point p;
+          p.getVector4fMap() = T * (*from.full)[s * step].getVector4fMap();
+          ++acc.checked;
+          if (to.full_tree->nearestKSearch(p, 1, idx, d2) < 1) continue;
+          const double d = std::sqrt(static_cast<double>(d2[0]));
+          if (d <= d_th) {
+            ++acc.inliers;
+            acc.sum += d;
+          } else if (d > d_conflict) {
+            const octomap::OcTreeNode* node = to.tree->search(p.x, p.y, p.z);
+            if (node != nullptr && !to.tree->isNodeOccupied(node)) ++acc.conflicts;
+          }
+        }
+        return acc;
+      },
+      [](Counts a, const Counts& b) {
+        a.inliers += b.inliers;
+        a.conflicts += b.conflicts;
+        a.checked += b.checked;
+        a.sum += b.sum;
+        return a;
+      });
+}
+
+/// Both directions: source into target and target into source.
+Validation check(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
+                 const Eigen::Matrix4d& T_target_source, std::size_t samples,
+                 const ValidateConfig& c, std::size_t n_th) {
+  const double res = scale_of(target, source);
+  const Counts a = check_direction(source, target, T_target_source, samples, c, res);
+  const Counts b = check_direction(target, source, T_target_source.inverse(), samples, c, res);
+  Validation v;
+  v.inliers = a.inliers + b.inliers;
+  v.conflicts = a.conflicts + b.conflicts;
+  v.checked = a.checked + b.checked;
+  const bool enough = v.inliers >= n_th && v.inliers > 0;
+  v.fitness = enough ? (a.sum + b.sum) / static_cast<double>(v.inliers)
+                     : std::numeric_limits<double>::infinity();
+  const double seen = static_cast<double>(v.inliers + v.conflicts);
+  v.overlap = v.checked ? seen / static_cast<double>(v.checked) : 0.0;
+  v.inlier_share = seen > 0.0 ? static_cast<double>(v.inliers) / seen : 0.0;
+  v.inlier_fraction = v.checked ? static_cast<double>(v.inliers) / static_cast<double>(v.checked) : 0.0;
+  return v;
+}
+
+/// Ranking score of a validated transform: agreement minus contradiction.
+double score_of(const Validation& v) {
+  return static_cast<double>(v.inliers) - 2.0 * static_cast<double>(v.conflicts);
+}
+
+/// Empty string when `v` passes every acceptance test, else the reason.
+std::string rejection(const Validation& v, const ValidateConfig& c, double res) {
+  std::ostringstream why;
+  if (!std::isfinite(v.fitness)) {
+    why << "fewer than n_th=" << c.n_th << " point pairs within d_th (" << v.inliers << ")";
+  } else if (v.fitness > c.max_fitness * res) {
+    why << "fitness " << v.fitness << " m above " << c.max_fitness * res << " m";
+  } else if (v.inlier_fraction < c.min_inlier_fraction) {
+    why << "inlier fraction " << v.inlier_fraction << " below " << c.min_inlier_fraction;
+  } else if (v.inlier_share < c.min_inlier_share) {
+    why << "contradicts free space: inlier share " << v.inlier_share << " below "
+        << c.min_inlier_share;
+  }
+  return why.str();
+}
+
+// ---------------------------------------------------------------------------------------
+// Stage 8: local alignment.
+
+/// Target points inside the source's box (moved into the target frame) inflated by d_m.
+Cloud::Ptr crop_target(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
+                       const Eigen::Matrix4d& T, double margin) {
+  Eigen::Vector3f lo = Eigen::Vector3f::Constant(std::numeric_limits<float>::max());
+  Eigen::Vector3f hi = -lo;
+  const Eigen::Matrix4f Tf = T.cast<float>();
+  for (const auto& p : *source.cloud) {
+    const Eigen::Vector3f q = (Tf * p.getVector4fMap()).head<3>();
+    lo = lo.cwiseMin(q);
+    hi = hi.cwiseMax(q);
+  }
+  const Eigen::Vector3f m = Eigen::Vector3f::Constant(static_cast<float>(margin));
+  lo -= m;
+  hi += m;
+  auto crop = std::make_shared<Cloud>();
+  for (const auto& p : *target.cloud) {
+    const Eigen::Vector3f q = p.getVector3fMap();
+    if ((q.array() >= lo.array()).all() && (q.array() <= hi.array()).all()) crop->push_back(p);
+  }
+  return crop;
+}
+
+struct Normal6 {
+  Eigen::Matrix<double, 6, 6> A = Eigen::Matrix<double, 6, 6>::Zero();
+  Eigen::Matrix<double, 6, 1> b = Eigen::Matrix<double, 6, 1>::Zero();
+  std::size_t pairs = 0;
+};
+
+/// One Gauss-Newton step of (occupancy-weighted) point-to-plane or point-to-point ICP.
+Normal6 icp_system(const Cloud& src, std::size_t step, const Cloud& tgt,
+                   const pcl::KdTreeFLANN<Point>& tree, const Eigen::Matrix4d& T, double dmax,
+                   const RefineConfig& c, double sigma) {
+  const Eigen::Matrix4f Tf = T.cast<float>();
+  const bool weighted = c.method == RefineMethod::kOicp;
+  const float dmax2 = static_cast<float>(dmax * dmax);
+  auto body = [&](const tbb::blocked_range<std::size_t>& r, Normal6 acc) {
+    pcl::Indices idx(1);
+    std::vector<float> d2(1);
+    for (std::size_t s = r.begin(); s < r.end(); ++s) {
+      const Point& sp = src[s * step];
+      Point p;
+      p.getVector4fMap() = Tf * sp.getVector4fMap();
+      if (tree.nearestKSearch(p, 1, idx, d2) < 1 || d2[0] > dmax2) continue;
+      const Point& q = tgt[idx[0]];
+      const Eigen::Vector3d pd = p.getVector3fMap().cast<double>();
+      const Eigen::Vector3d diff = pd - q.getVector3fMap().cast<double>();
+      double w = weighted ? static_cast<double>(sp.intensity) * q.intensity : 1.0;
+      if (c.point_to_plane) {
+        const Eigen::Vector3d n = q.getNormalVector3fMap().cast<double>();
+        const double r0 = diff.dot(n);
+        w /= 1.0 + (r0 * r0) / (sigma * sigma);  // Cauchy-like robust weight
+        Eigen::Matrix<double, 6, 1> J;
+        J << pd.cross(n), n;
+        acc.A += w * J * J.transpose();
+        acc.b += w * J * r0;
+      } else {
+        w /= 1.0 + diff.squaredNorm() / (sigma * sigma);
+        Eigen::Matrix<double, 3, 6> J;
+        J.setZero();
+        J.rightCols<3>().setIdentity();
+        J(0, 1) = pd.z(); J(0, 2) = -pd.y();
+        J(1, 0) = -pd.z(); J(1, 2) = pd.x();
+        J(2, 0) = pd.y(); J(2, 1) = -pd.x();
+        acc.A += w * J.transpose() * J;
+        acc.b += w * J.transpose() * diff;
+      }
+      ++acc.pairs;
+    }
+    return acc;
+  };
+  const std::size_t count = (src.size() + step - 1) / step;
+  return tbb::parallel_reduce(tbb::blocked_range<std::size_t>(0, count, 512), Normal6{}, body,
+                              [](Normal6 a, const Normal6& b) {
+                                a.A += b.A;
+                                a.b += b.b;
+                                a.pairs += b.pairs;
+                                return a;
+                              });
+}
+
+Eigen::Matrix4d icp(const PreparedMap::Impl& source, const Cloud::Ptr& target_crop,
+                    const Eigen::Matrix4d& T0, const RefineConfig& c, double res) {
+  if (target_crop->size() < 10) return T0;
+  pcl::KdTreeFLANN<Point> tree;
+  tree.setInputCloud(target_crop);
+  const std::size_t step = std::max<std::size_t>(1, source.cloud->size() / c.max_points);
+  Eigen::Matrix4d T = T0;
+  for (int it = 0; it < c.max_iterations; ++it) {
+    const double f = std::min(1.0, 2.0 * it / std::max(1, c.max_iterations));
+    const double dmax = (c.max_correspondence + f * (c.final_correspondence - c.max_correspondence)) * res;
+    const Normal6 sys = icp_system(*source.cloud, step, *target_crop, tree, T, dmax, c, dmax / 2.0);
+    if (sys.pairs < 6) break;
+    const Eigen::Matrix<double, 6, 6> A = sys.A + 1e-6 * sys.A.trace() * Eigen::Matrix<double, 6, 6>::Identity();
+    const Eigen::Matrix<double, 6, 1> x = -A.ldlt().solve(sys.b);
+    if (!x.allFinite()) break;
+    Eigen::Matrix4d dT = Eigen::Matrix4d::Identity();
+    const double angle = x.head<3>().norm();
+    if (angle > 0.0) dT.topLeftCorner<3, 3>() = Eigen::AngleAxisd(angle, x.head<3>() / angle).toRotationMatrix();
+    dT.topRightCorner<3, 1>() = x.tail<3>();
+    T = dT * T;
+    if (x.tail<3>().norm() < c.convergence_translation * res &&
+        angle * 180.0 / M_PI < c.convergence_rotation_deg && f >= 1.0)
+      break;
+  }
+  return T;
+}
+
+Eigen::Matrix4d ndt(const PreparedMap::Impl& source, const Cloud::Ptr& target_crop,
+                    const Eigen::Matrix4d& T0, const RefineConfig& c, double res) {
+  if (target_crop->size() < 10) return T0;
+  auto src = std::make_shared<Cloud>();
+  const std::size_t step = std::max<std::size_t>(1, source.cloud->size() / c.max_points);
+  for (std::size_t i = 0; i < source.cloud->size(); i += step) src->push_back((*source.cloud)[i]);
+  pcl::NormalDistributionsTransform<Point, Point> reg;
+  reg.setResolution(static_cast<float>(c.ndt_resolution * res));
+  reg.setStepSize(c.ndt_step * res);
+  reg.setTransformationEpsilon(c.convergence_translation * res);
+  reg.setMaximumIterations(c.max_iterations);
+  reg.setInputTarget(target_crop);
+  reg.setInputSource(src);
+  Cloud out;
+  reg.align(out, T0.cast<float>());
+  if (!reg.hasConverged()) return T0;
+  return reg.getFinalTransformation().cast<double>();
+}
+
+Eigen::Matrix4d local_alignment(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
+                                const Eigen::Matrix4d& T0, const RefineConfig& c) {
+  if (c.method == RefineMethod::kNone) return T0;
+  const double res = scale_of(target, source);
+  const Cloud::Ptr crop = crop_target(target, source, T0, c.crop_margin * res);
+  return c.method == RefineMethod::kNdt ? ndt(source, crop, T0, c, res)
+                                        : icp(source, crop, T0, c, res);
+}
+
+// ---------------------------------------------------------------------------------------
+// Orchestration.
+
+struct Candidate {
+  Hypothesis h;
+  Validation coarse;
+  Eigen::Matrix4d T_refined = Eigen::Matrix4d::Identity();
+  Validation fine;
+};
+
+void add_prepare_timings(StageTimings& t, const StageTimings& m) {
+  t.to_points_ms += m.to_points_ms;
+  t.preprocess_ms += m.preprocess_ms;
+  t.keypoints_ms += m.keypoints_ms;
+  t.describe_ms += m.describe_ms;
+}
+
+/// Source keypoint subsets: the blocks of stage 3 in spiral order, or the whole map.
+std::vector<std::vector<int>> keypoint_subsets(const PreparedMap::Impl& source,
+                                               const SubmodelConfig& c, double res) {
+  std::vector<std::vector<int>> subsets;
+  const std::size_t n = source.keypoints->size();
+  if (!c.enabled) {
+    subsets.emplace_back(n);
+    for (std::size_t i = 0; i < n; ++i) subsets.back()[i] = static_cast<int>(i);
+    return subsets;
+  }
+  std::vector<Eigen::Vector3f> positions;
+  positions.reserve(n);
+  for (const auto& p : *source.keypoints) positions.push_back(p.getVector3fMap());
+  for (const Block& b : make_submodels(positions, c, res)) {
+    if (b.members.size() < c.min_keypoints) continue;
+    subsets.emplace_back(b.members.begin(), b.members.end());
+  }
+  return subsets;
+}
+
+/// Stage 3 + 6 + coarse 7: hypotheses of every block (spiral order, on the thread pool).
+std::vector<Candidate> search_blocks(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
+                                     const std::vector<Match>& matches,
+                                     const std::vector<std::vector<int>>& subsets,
+                                     const AlignConfig& cfg, std::atomic<double>& match_ms,
+                                     std::atomic<double>& validate_ms, std::size_t& raw) {
+  const double res = scale_of(target, source);
+  std::vector<Candidate> found;
+  std::mutex lock;
+  std::atomic<std::size_t> next{0}, raw_count{0};
+  std::atomic<bool> stop{false};
+  const ValidateConfig& vc = cfg.validate;
+  auto worker = [&](int) {
+    for (std::size_t i = next++; i < subsets.size() && !stop; i = next++) {
+      auto t0 = Clock::now();
+      std::vector<Hypothesis> hyps = generate_hypotheses(target, source, matches, subsets[i], cfg,
+                                                         cfg.seed + static_cast<unsigned>(i));
+      add_ms(match_ms, t0);
+      raw_count += hyps.size();
+      t0 = Clock::now();
+      for (Hypothesis& h : hyps) {
+        h.submodel = cfg.submodels.enabled ? static_cast<int>(i) : -1;
+        Candidate cand;
+        cand.h = h;
+        cand.coarse = check(target, source, h.T_target_source, vc.coarse_points, vc, 1);
+        const bool good = cand.coarse.inlier_share >= cfg.submodels.early_stop_inlier_share &&
+                          cand.coarse.inlier_fraction >= vc.min_inlier_fraction &&
+                          cand.coarse.fitness <= vc.max_fitness * res;
+        std::lock_guard<std::mutex> g(lock);
+        found.push_back(cand);
+        if (good && cfg.submodels.enabled && cfg.submodels.early_stop) stop = true;
+      }
+      add_ms(validate_ms, t0);
+    }
+  };
+  const int threads = cfg.submodels.threads > 0 ? cfg.submodels.threads
+                                                : tbb::this_task_arena::max_concurrency();
+  const int workers = static_cast<int>(std::min<std::size_t>(subsets.size(), static_cast<std::size_t>(threads)));
+  tbb::parallel_for(0, std::max(1, workers), worker);
+  raw = raw_count;
+  return found;
+}
+
+/// Keeps the best distinct candidates by coarse score.
+std::vector<Candidate> shortlist(std::vector<Candidate> all, const ValidateConfig& c, double res) {
+  std::sort(all.begin(), all.end(), [](const Candidate& a, const Candidate& b) {
+    return score_of(a.coarse) > score_of(b.coarse);
+  });
+  std::vector<Candidate> out;
+  for (const Candidate& cand : all) {
+    bool dup = false;
+    for (const Candidate& o : out)
+      dup = dup || same_pose(o.h.T_target_source, cand.h.T_target_source, c.distinct_rotation_deg,
+                             c.distinct_translation * res);
+    if (!dup) out.push_back(cand);
+    if (out.size() >= c.refine_candidates) break;
+  }
+  return out;
+}
+
+std::size_t fine_samples(const ValidateConfig& c) { return c.coarse_points * 4; }
+
+}  // namespace
+
+AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
+                  const AlignConfig& cfg) {
+  const auto t_all = Clock::now();
+  const PreparedMap::Impl& target = target_map.impl();
+  const PreparedMap::Impl& source = source_map.impl();
+  const double res = scale_of(target, source);
+  AlignResult result;
+  add_prepare_timings(result.timings, target.timings);
+  add_prepare_timings(result.timings, source.timings);
+  auto finish = [&](std::string reason) {
+    result.reason = std::move(reason);
+    result.timings.total_ms = ms_since(t_all);
+    return result;
+  };
+  if (source.keypoints->size() < 3 || target.keypoints->size() < 3)
+    return finish("too few keypoints (target " + std::to_string(target.keypoints->size()) +
+                  ", source " + std::to_string(source.keypoints->size()) + ")");
+  std::atomic<double> match_ms{0.0}, validate_ms{0.0};
+  auto t0 = Clock::now();
+  const std::vector<Match> matches = match_descriptors(target, source, cfg.match);
+  add_ms(match_ms, t0);
+
+  t0 = Clock::now();
+  const auto subsets = keypoint_subsets(source, cfg.submodels, res);
+  result.timings.submodels_ms = ms_since(t0);
+  std::vector<Candidate> cands =
+      shortlist(search_blocks(target, source, matches, subsets, cfg, match_ms, validate_ms,
+                              result.hypotheses),
+                cfg.validate, res);
+  result.timings.match_ms = match_ms;
+  if (cands.empty()) {
+    result.timings.validate_ms = validate_ms;
+    return finish("no hypothesis from " + std::to_string(matches.size()) + " correspondences");
+  }
+  t0 = Clock::now();
+  for (Candidate& c : cands) c.T_refined = local_alignment(target, source, c.h.T_target_source, cfg.refine);
+  result.timings.refine_ms = ms_since(t0);
+
+  t0 = Clock::now();
+  for (Candidate& c : cands)
+    c.fine = check(target, source, c.T_refined, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);
+  // Best by score; the distinct runner-up must be clearly worse (repetitive corridors).
+  std::sort(cands.begin(), cands.end(), [](const Candidate& a, const Candidate& b) {
+    return score_of(a.fine) > score_of(b.fine);
+  });
+  const Candidate& best = cands.front();
+  std::string why = rejection(best.fine, cfg.validate, res);
+  for (std::size_t i = 1; i < cands.size() && why.empty(); ++i) {
+    if (same_pose(best.T_refined, cands[i].T_refined, cfg.validate.distinct_rotation_deg,
+                  cfg.validate.distinct_translation * res))
+      continue;
+    if (score_of(cands[i].fine) >= cfg.validate.ambiguity_ratio * score_of(best.fine))
+      why = "ambiguous: a distinct transform scores " +
+            std::to_string(score_of(cands[i].fine) / std::max(1.0, score_of(best.fine))) + " of the best";
+  }
+  add_ms(validate_ms, t0);
+  result.timings.validate_ms = validate_ms;
+  result.T_target_source = best.T_refined;
+  result.fitness = best.fine.fitness;
+  result.inliers = best.fine.inliers;
+  result.overlap = best.fine.overlap;
+  result.inlier_share = best.fine.inlier_share;
+  result.submodel = best.h.submodel;
+  result.accepted = why.empty();
+  if (!result.accepted) result.T_target_source = Eigen::Matrix4d::Identity();
+  return finish(why);
+}
+
+AlignResult refine(const PreparedMap& target_map, const PreparedMap& source_map,
+                   const Eigen::Matrix4d& T_target_source_init, const AlignConfig& cfg) {
+  const auto t_all = Clock::now();
+  const PreparedMap::Impl& target = target_map.impl();
+  const PreparedMap::Impl& source = source_map.impl();
+  AlignResult result;
+  auto t0 = Clock::now();
+  const Eigen::Matrix4d T = local_alignment(target, source, T_target_source_init, cfg.refine);
+  result.timings.refine_ms = ms_since(t0);
+  t0 = Clock::now();
+  const Validation v = check(target, source, T, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);
+  result.timings.validate_ms = ms_since(t0);
+  result.reason = rejection(v, cfg.validate, scale_of(target, source));
+  result.accepted = result.reason.empty();
+  result.T_target_source = result.accepted ? T : T_target_source_init;
+  result.fitness = v.fitness;
+  result.inliers = v.inliers;
+  result.overlap = v.overlap;
+  result.inlier_share = v.inlier_share;
+  result.timings.total_ms = ms_since(t_all);
+  return result;
+}
+
+Validation validate(const PreparedMap& target, const PreparedMap& source,
+                    const Eigen::Matrix4d& T_target_source, const AlignConfig& cfg) {
+  return check(target.impl(), source.impl(), T_target_source, fine_samples(cfg.validate),
+               cfg.validate, cfg.validate.n_th);
+}
+
+AlignResult align_maps(const octomap::OcTree& target, const octomap::OcTree& source,
+                       const AlignConfig& config) {
+  const auto t_all = Clock::now();
+  PreparedMap t, s;
+  tbb::parallel_invoke([&] { t = prepare_map(target, config); },
+                       [&] { s = prepare_map(source, config); });
+  AlignResult r = align(t, s, config);
+  r.timings.total_ms = ms_since(t_all);
+  return r;
+}
+
+Fitness fitness_score(const std::vector<Eigen::Vector3f>& source_in_target,
+                      const std::vector<Eigen::Vector3f>& target, double d_th, std::size_t n_th) {
+  if (target.empty()) return fitness_from_distances({}, d_th, n_th);
+  auto cloud = std::make_shared<Cloud>();
+  for (const auto& p : target) {
+    Point q;
+    q.getVector3fMap() = p;
+    cloud->push_back(q);
+  }
+  pcl::KdTreeFLANN<Point> tree;
+  tree.setInputCloud(cloud);
+  std::vector<double> distances;
+  pcl::Indices idx(1);
+  std::vector<float> d2(1);
+  for (const auto& p : source_in_target) {
+    Point q;
+    q.getVector3fMap() = p;
+    if (tree.nearestKSearch(q, 1, idx, d2) == 1) distances.push_back(std::sqrt(static_cast<double>(d2[0])));
+  }
+  return fitness_from_distances(distances, d_th, n_th);
+}
+
+std::string timings_json(const StageTimings& t) {
+  std::ostringstream o;
+  o << "{\"to_points_ms\":" << t.to_points_ms << ",\"preprocess_ms\":" << t.preprocess_ms
+    << ",\"keypoints_ms\":" << t.keypoints_ms << ",\"describe_ms\":" << t.describe_ms
+    << ",\"submodels_ms\":" << t.submodels_ms << ",\"match_ms\":" << t.match_ms
+    << ",\"validate_ms\":" << t.validate_ms << ",\"refine_ms\":" << t.refine_ms
+    << ",\"total_ms\":" << t.total_ms << "}";
+  return o.str();
+}
+
+}  // namespace mapmerge::align

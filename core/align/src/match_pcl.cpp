@@ -1,0 +1,267 @@
+// Stage 6: descriptor correspondences and global hypotheses (PCL translation unit 2 of 3).
+#include <algorithm>
+#include <random>
+
+#include <Eigen/Geometry>
+#include <pcl/recognition/cg/geometric_consistency.h>
+#include <pcl/registration/ia_ransac.h>
+#include <pcl/registration/sample_consensus_prerejective.h>
+
+#include "prepared_map_impl.hpp"
+
+namespace mapmerge::align {
+namespace {
+
+template <class Feature>
+std::vector<Match> match_features(const pcl::PointCloud<Feature>& src_f,
+                                  const pcl::KdTreeFLANN<Feature>& src_tree,
+                                  const pcl::KdTreeFLANN<Feature>& tgt_tree,
+                                  const MatchConfig& c) {
+  std::vector<Match> matches;
+  const int k = c.mutual ? 1 : c.k_nearest;
+  pcl::Indices idx(k);
+  std::vector<float> d2(k);
+  pcl::Indices back(1);
+  std::vector<float> back_d2(1);
+  for (std::size_t i = 0; i < src_f.size(); ++i) {
+    const int found = tgt_tree.nearestKSearch(src_f[i], k, idx, d2);
+    for (int n = 0; n < found; ++n) {
+      if (c.mutual) {
+        const auto& tgt_f = *tgt_tree.getInputCloud();
+        if (src_tree.nearestKSearch(tgt_f[idx[n]], 1, back, back_d2) < 1 ||
+            back[0] != static_cast<int>(i))
+          continue;
+      }
+      matches.push_back({static_cast<int>(i), idx[n], d2[n]});
+    }
+  }
+  std::sort(matches.begin(), matches.end(),
+            [](const Match& a, const Match& b) { return a.distance < b.distance; });
+  if (matches.size() > c.max_correspondences) matches.resize(c.max_correspondences);
+  return matches;
+}
+
+/// Correspondences (source, target positions) usable by the geometric methods.
+struct Pairs {
+  std::vector<Eigen::Vector3d> src, tgt;
+  std::vector<int> src_kp, tgt_kp;  ///< keypoint indices
+};
+
+Pairs pairs_of(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
+               const std::vector<Match>& matches, const std::vector<int>& subset) {
+  std::vector<char> in_subset(source.keypoints->size(), 0);
+  for (int i : subset) in_subset[static_cast<std::size_t>(i)] = 1;
+  Pairs p;
+  for (const Match& m : matches) {
+    if (!in_subset[static_cast<std::size_t>(m.source)]) continue;
+    p.src.push_back((*source.keypoints)[m.source].getVector3fMap().cast<double>());
+    p.tgt.push_back((*target.keypoints)[m.target].getVector3fMap().cast<double>());
+    p.src_kp.push_back(m.source);
+    p.tgt_kp.push_back(m.target);
+  }
+  return p;
+}
+
+/// Rigid transform (least squares, Umeyama) from the listed pairs.
+Eigen::Matrix4d fit(const Pairs& p, const std::vector<int>& which) {
+  Eigen::Matrix3Xd a(3, which.size()), b(3, which.size());
+  for (std::size_t i = 0; i < which.size(); ++i) {
+    a.col(static_cast<Eigen::Index>(i)) = p.src[static_cast<std::size_t>(which[i])];
+    b.col(static_cast<Eigen::Index>(i)) = p.tgt[static_cast<std::size_t>(which[i])];
+  }
+  return Eigen::umeyama(a, b, false);
+}
+
+std::vector<int> consensus_of(const Pairs& p, const Eigen::Matrix4d& T, double eps) {
+  const Eigen::Matrix3d R = T.topLeftCorner<3, 3>();
+  const Eigen::Vector3d t = T.topRightCorner<3, 1>();
+  std::vector<int> inliers;
+  const double eps2 = eps * eps;
+  for (std::size_t i = 0; i < p.src.size(); ++i)
+    if ((R * p.src[i] + t - p.tgt[i]).squaredNorm() < eps2) inliers.push_back(static_cast<int>(i));
+  return inliers;
+}
+
+/// Keeps the `max` best distinct hypotheses (by consensus).
+void keep_best(std::vector<Hypothesis>& best, Hypothesis h, std::size_t max, double rot,
+               double trans) {
+  for (auto& b : best) {
+    if (same_pose(b.T_target_source, h.T_target_source, rot, trans)) {
+      if (h.consensus > b.consensus) b = h;
+      return;
+    }
+  }
+  best.push_back(h);
+  std::sort(best.begin(), best.end(),
+            [](const Hypothesis& a, const Hypothesis& b) { return a.consensus > b.consensus; });
+  if (best.size() > max) best.resize(max);
+}
+
+/// RANSAC guided by pairwise length consistency: a seed correspondence and two partners that
+/// preserve distances to it (and to each other) are drawn; prerejection by edge similarity.
+std::vector<Hypothesis> ransac(const Pairs& p, const AlignConfig& cfg, double res, unsigned seed) {
+  const MatchConfig& c = cfg.match;
+  const std::size_t m = p.src.size();
+  if (m < 3) return {};
+  const double tol = c.inlier_distance * res;
+  const double min_edge = c.min_edge * res;
+  // Compatibility lists: j is compatible with i when both lengths agree within tol.
+  std::vector<std::vector<int>> compatible(m);
+  for (std::size_t i = 0; i < m; ++i)
+    for (std::size_t j = i + 1; j < m; ++j) {
+      const double ds = (p.src[i] - p.src[j]).norm();
+      const double dt = (p.tgt[i] - p.tgt[j]).norm();
+      if (ds < min_edge || std::abs(ds - dt) > tol) continue;
+      if (std::min(ds, dt) < c.edge_similarity * std::max(ds, dt)) continue;
+      compatible[i].push_back(static_cast<int>(j));
+      compatible[j].push_back(static_cast<int>(i));
+    }
+  std::vector<double> weight(m);
+  for (std::size_t i = 0; i < m; ++i) weight[i] = static_cast<double>(compatible[i].size());
+  if (*std::max_element(weight.begin(), weight.end()) < 2.0) return {};
+  std::mt19937 rng(seed);
+  std::discrete_distribution<std::size_t> pick_seed(weight.begin(), weight.end());
+  std::vector<Hypothesis> best;
+  const double rot = cfg.validate.distinct_rotation_deg;
+  const double trans = cfg.validate.distinct_translation * res;
+  for (int it = 0; it < c.iterations; ++it) {
+    const std::size_t a = pick_seed(rng);
+    const auto& na = compatible[a];
+    if (na.size() < 2) continue;
+    std::uniform_int_distribution<std::size_t> pick(0, na.size() - 1);
+    const int b = na[pick(rng)], cc = na[pick(rng)];
+    if (b == cc) continue;
+    const auto& nb = compatible[static_cast<std::size_t>(b)];
+    if (!std::binary_search(nb.begin(), nb.end(), cc)) continue;  // lists are sorted
+    const Eigen::Matrix4d T = fit(p, {static_cast<int>(a), b, cc});
+    std::vector<int> inliers = consensus_of(p, T, tol);
+    if (inliers.size() < c.min_consensus) continue;
+    const Eigen::Matrix4d T_ls = fit(p, inliers);  // least squares over the consensus
+    inliers = consensus_of(p, T_ls, tol);
+    keep_best(best, {T_ls, inliers.size(), -1}, c.max_hypotheses, rot, trans);
+  }
+  return best;
+}
+
+/// Subset of keypoints and features for PCL's registration classes.
+template <class Feature>
+void subset_clouds(const PreparedMap::Impl& m, const pcl::PointCloud<Feature>& f,
+                   const std::vector<int>& subset, Cloud& points,
+                   pcl::PointCloud<Feature>& features) {
+  for (int i : subset) {
+    points.push_back((*m.keypoints)[i]);
+    features.push_back(f[i]);
+  }
+}
+
+template <class Feature>
+std::vector<Hypothesis> pcl_sac(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
+                                const pcl::PointCloud<Feature>& tgt_f,
+                                const pcl::PointCloud<Feature>& src_f,
+                                const std::vector<int>& subset, const AlignConfig& cfg,
+                                double res) {
+  const MatchConfig& c = cfg.match;
+  auto src = std::make_shared<Cloud>();
+  auto src_feat = std::make_shared<pcl::PointCloud<Feature>>();
+  subset_clouds(source, src_f, subset, *src, *src_feat);
+  if (src->size() < 3 || target.keypoints->size() < 3) return {};
+  auto tgt_feat = std::make_shared<const pcl::PointCloud<Feature>>(tgt_f);
+  Cloud aligned;
+  Eigen::Matrix4f T = Eigen::Matrix4f::Identity();
+  bool converged = false;
+  if (c.method == MatchMethod::kSacIa) {
+    pcl::SampleConsensusInitialAlignment<Point, Point, Feature> sac;
+    sac.setInputSource(src);
+    sac.setSourceFeatures(src_feat);
+    sac.setInputTarget(target.keypoints);
+    sac.setTargetFeatures(tgt_feat);
+    sac.setMinSampleDistance(static_cast<float>(c.min_edge * res));
+    sac.setMaxCorrespondenceDistance(c.inlier_distance * res);
+    sac.setMaximumIterations(c.iterations);
+    sac.setCorrespondenceRandomness(c.k_nearest);
+    sac.align(aligned);
+    converged = sac.hasConverged();
+    T = sac.getFinalTransformation();
+  } else {
+    pcl::SampleConsensusPrerejective<Point, Point, Feature> sac;
+    sac.setInputSource(src);
+    sac.setSourceFeatures(src_feat);
+    sac.setInputTarget(target.keypoints);
+    sac.setTargetFeatures(tgt_feat);
+    sac.setMaximumIterations(c.iterations);
+    sac.setNumberOfSamples(3);
+    sac.setCorrespondenceRandomness(c.k_nearest);
+    sac.setSimilarityThreshold(static_cast<float>(c.edge_similarity));
+    sac.setMaxCorrespondenceDistance(c.inlier_distance * res);
+    sac.setInlierFraction(0.05F);
+    sac.align(aligned);
+    converged = sac.hasConverged();
+    T = sac.getFinalTransformation();
+  }
+  if (!converged) return {};
+  return {{T.cast<double>(), 0, -1}};
+}
+
+std::vector<Hypothesis> gcc(const PreparedMap::Impl& target, const Pairs& p,
+                            const AlignConfig& cfg, double res) {
+  auto model = std::make_shared<Cloud>();
+  auto corrs = std::make_shared<pcl::Correspondences>();
+  for (std::size_t i = 0; i < p.src.size(); ++i) {
+    Point q;
+    q.getVector3fMap() = p.src[i].cast<float>();
+    model->push_back(q);
+    corrs->emplace_back(static_cast<int>(i), p.tgt_kp[i], 0.0F);
+  }
+  if (corrs->size() < 3) return {};
+  pcl::GeometricConsistencyGrouping<Point, Point> gc;
+  gc.setGCSize(cfg.match.gc_size * res);
+  gc.setGCThreshold(cfg.match.gc_threshold);
+  gc.setInputCloud(model);
+  gc.setSceneCloud(target.keypoints);
+  gc.setModelSceneCorrespondences(corrs);
+  std::vector<Eigen::Matrix4f, Eigen::aligned_allocator<Eigen::Matrix4f>> transforms;
+  std::vector<pcl::Correspondences> clusters;
+  gc.recognize(transforms, clusters);
+  std::vector<Hypothesis> out;
+  const double rot = cfg.validate.distinct_rotation_deg;
+  const double trans = cfg.validate.distinct_translation * res;
+  for (std::size_t i = 0; i < transforms.size(); ++i)
+    keep_best(out, {transforms[i].cast<double>(), clusters[i].size(), -1},
+              cfg.match.max_hypotheses, rot, trans);
+  return out;
+}
+
+}  // namespace
+
+std::vector<Match> match_descriptors(const PreparedMap::Impl& target,
+                                     const PreparedMap::Impl& source, const MatchConfig& config) {
+  if (source.fpfh && target.fpfh && !source.fpfh->empty() && !target.fpfh->empty())
+    return match_features(*source.fpfh, *source.fpfh_tree, *target.fpfh_tree, config);
+  if (source.shot && target.shot && !source.shot->empty() && !target.shot->empty())
+    return match_features(*source.shot, *source.shot_tree, *target.shot_tree, config);
+  return {};
+}
+
+std::vector<Hypothesis> generate_hypotheses(const PreparedMap::Impl& target,
+                                            const PreparedMap::Impl& source,
+                                            const std::vector<Match>& matches,
+                                            const std::vector<int>& subset,
+                                            const AlignConfig& config, unsigned seed) {
+  const double res = source.resolution;
+  switch (config.match.method) {
+    case MatchMethod::kRansac:
+      return ransac(pairs_of(target, source, matches, subset), config, res, seed);
+    case MatchMethod::kGcc:
+      return gcc(target, pairs_of(target, source, matches, subset), config, res);
+    case MatchMethod::kSacIa:
+    case MatchMethod::kPrerejective:
+      if (source.fpfh && target.fpfh)
+        return pcl_sac(target, source, *target.fpfh, *source.fpfh, subset, config, res);
+      if (source.shot && target.shot)
+        return pcl_sac(target, source, *target.shot, *source.shot, subset, config, res);
+      return {};
+  }
+  return {};
+}
+
+}  // namespace mapmerge::align

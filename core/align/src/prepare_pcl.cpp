@@ -1,0 +1,262 @@
+// Stages 1, 2, 4, 5 for one map (PCL translation unit 1 of 3).
+#include <chrono>
+#include <stdexcept>
+
+#include <pcl/features/fpfh_omp.h>
+#include <pcl/features/normal_3d_omp.h>
+#include <pcl/features/shot_omp.h>
+#include <pcl/filters/extract_indices.h>
+#include <pcl/filters/statistical_outlier_removal.h>
+#include <pcl/filters/voxel_grid.h>
+#include <pcl/keypoints/iss_3d.h>
+#include <pcl/sample_consensus/method_types.h>
+#include <pcl/sample_consensus/model_types.h>
+#include <pcl/segmentation/sac_segmentation.h>
+
+#include "mapmerge/align/stages.hpp"
+#include "prepared_map_impl.hpp"
+
+namespace mapmerge::align {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+double ms_since(Clock::time_point t0) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+}
+
+Cloud::Ptr to_cloud(const std::vector<OccupiedPoint>& points) {
+  auto cloud = std::make_shared<Cloud>();
+  cloud->reserve(points.size());
+  for (const auto& p : points) {
+    Point q;
+    q.getVector3fMap() = p.position;
+    q.intensity = p.occupancy;
+    q.normal_x = q.normal_y = q.normal_z = q.curvature = 0.0F;
+    cloud->push_back(q);
+  }
+  return cloud;
+}
+
+Cloud::Ptr remove_ground(const Cloud::Ptr& cloud, const PreprocessConfig& c, double res) {
+  pcl::SACSegmentation<Point> seg;
+  seg.setModelType(pcl::SACMODEL_PERPENDICULAR_PLANE);
+  seg.setMethodType(pcl::SAC_RANSAC);
+  seg.setAxis(Eigen::Vector3f::UnitZ());
+  seg.setEpsAngle(static_cast<float>(c.ground_max_tilt_deg * M_PI / 180.0));
+  seg.setDistanceThreshold(c.ground_distance * res);
+  seg.setMaxIterations(200);
+  seg.setInputCloud(cloud);
+  pcl::PointIndices inliers;
+  pcl::ModelCoefficients coefficients;
+  seg.segment(inliers, coefficients);
+  if (inliers.indices.empty()) return cloud;
+  // Only a plane below most of the map is ground (not a ceiling, not a wall).
+  const float plane_z = (*cloud)[inliers.indices.front()].z;
+  std::size_t below = 0;
+  for (const auto& p : *cloud) below += p.z < plane_z ? 1 : 0;
+  if (below > cloud->size() / 4) return cloud;
+  pcl::ExtractIndices<Point> extract;
+  extract.setInputCloud(cloud);
+  extract.setIndices(std::make_shared<pcl::PointIndices>(inliers));
+  extract.setNegative(true);
+  auto out = std::make_shared<Cloud>();
+  extract.filter(*out);
+  return out;
+}
+
+/// Stage 2: pass-through, ground removal, voxel grid, statistical outlier removal.
+Cloud::Ptr preprocess(const Cloud::Ptr& input, const PreprocessConfig& c, double res) {
+  Cloud::Ptr cloud = input;
+  if (c.pass_through) {
+    auto kept = std::make_shared<Cloud>();
+    for (const auto& p : *cloud)
+      if (p.z >= c.z_min && p.z <= c.z_max) kept->push_back(p);
+    cloud = kept;
+  }
+  if (c.remove_ground && cloud->size() > 100) cloud = remove_ground(cloud, c, res);
+  if (c.voxel_size > 1.0) {
+    pcl::VoxelGrid<Point> grid;
+    const auto leaf = static_cast<float>(c.voxel_size * res);
+    grid.setLeafSize(leaf, leaf, leaf);
+    grid.setInputCloud(cloud);
+    auto out = std::make_shared<Cloud>();
+    grid.filter(*out);
+    cloud = out;
+  }
+  if (c.outlier_removal && cloud->size() > static_cast<std::size_t>(c.outlier_mean_k) + 1) {
+    pcl::StatisticalOutlierRemoval<Point> sor;
+    sor.setMeanK(c.outlier_mean_k);
+    sor.setStddevMulThresh(c.outlier_stddev);
+    sor.setInputCloud(cloud);
+    auto out = std::make_shared<Cloud>();
+    sor.filter(*out);
+    cloud = out;
+  }
+  return cloud;
+}
+
+/// Free-space votes along +n and -n: the surface faces the side the sensor saw as free.
+int free_votes(const octomap::OcTree& tree, const Point& p, float sign, double res) {
+  int votes = 0;
+  for (int step = 1; step <= 3; ++step) {
+    const auto d = static_cast<float>(sign * step * res);
+    const octomap::OcTreeNode* node =
+        tree.search(p.x + d * p.normal_x, p.y + d * p.normal_y, p.z + d * p.normal_z);
+    if (node != nullptr && !tree.isNodeOccupied(node)) ++votes;
+  }
+  return votes;
+}
+
+void estimate_normals(Cloud& cloud, const octomap::OcTree& tree, const PreprocessConfig& c,
+                      double res) {
+  pcl::NormalEstimationOMP<Point, pcl::Normal> ne(1);
+  ne.setInputCloud(std::shared_ptr<const Cloud>(&cloud, [](const Cloud*) {}));
+  ne.setRadiusSearch(c.normal_radius * res);
+  pcl::PointCloud<pcl::Normal> normals;
+  ne.compute(normals);
+  for (std::size_t i = 0; i < cloud.size(); ++i) {
+    Point& p = cloud[i];
+    p.getNormalVector3fMap() = normals[i].getNormalVector3fMap();
+    p.curvature = normals[i].curvature;
+    if (!std::isfinite(p.normal_x)) {
+      p.normal_x = p.normal_y = 0.0F;
+      p.normal_z = 1.0F;
+      continue;
+    }
+    const int plus = c.orient_normals_to_free ? free_votes(tree, p, 1.0F, res) : 0;
+    const int minus = c.orient_normals_to_free ? free_votes(tree, p, -1.0F, res) : 0;
+    const bool flip = minus > plus || (minus == plus && p.normal_z < 0.0F);
+    if (flip) p.getNormalVector3fMap() *= -1.0F;
+  }
+}
+
+pcl::IndicesPtr detect_iss(const Cloud::ConstPtr& cloud, const KeypointConfig& c, double res) {
+  pcl::ISSKeypoint3D<Point, Point, Point> iss;
+  iss.setInputCloud(cloud);
+  iss.setSalientRadius(c.salient_radius * res);
+  iss.setNonMaxRadius(c.non_max_radius * res);
+  iss.setThreshold21(c.gamma_21);
+  iss.setThreshold32(c.gamma_32);
+  iss.setMinNeighbors(c.min_neighbors);
+  iss.setNumberOfThreads(static_cast<unsigned>(std::max(1, c.threads)));
+  Cloud keypoints;
+  iss.compute(keypoints);
+  auto indices = std::make_shared<pcl::Indices>(iss.getKeypointsIndices()->indices);
+  return indices;
+}
+
+/// Keeps the keypoints whose descriptor is finite; returns their positions.
+template <class Feature>
+Cloud::Ptr keep_valid(const Cloud& cloud, const pcl::Indices& indices,
+                      pcl::PointCloud<Feature>& features) {
+  auto keypoints = std::make_shared<Cloud>();
+  pcl::PointCloud<Feature> kept;
+  for (std::size_t i = 0; i < indices.size(); ++i) {
+    const auto& f = features[i];
+    bool finite = true;
+    if constexpr (std::is_same_v<Feature, Shot>) {
+      for (float v : f.descriptor) finite = finite && std::isfinite(v);
+      for (float v : f.rf) finite = finite && std::isfinite(v);
+    } else {
+      for (float v : f.histogram) finite = finite && std::isfinite(v);
+    }
+    if (!finite) continue;
+    keypoints->push_back(cloud[indices[i]]);
+    kept.push_back(f);
+  }
+  features = std::move(kept);
+  return keypoints;
+}
+
+void describe(PreparedMap::Impl& m, const pcl::IndicesPtr& indices, const DescribeConfig& c) {
+  const double radius = c.radius * m.resolution;
+  const unsigned threads = static_cast<unsigned>(std::max(1, c.threads));
+  if (c.method == Descriptor::kFpfh) {
+    pcl::FPFHEstimationOMP<Point, Point, Fpfh> est(threads);
+    est.setInputCloud(m.cloud);
+    est.setIndices(indices);
+    est.setInputNormals(m.cloud);
+    est.setRadiusSearch(radius);
+    auto features = std::make_shared<pcl::PointCloud<Fpfh>>();
+    est.compute(*features);
+    m.keypoints = keep_valid(*m.cloud, *indices, *features);
+    m.fpfh = features;
+    m.fpfh_tree = std::make_shared<pcl::KdTreeFLANN<Fpfh>>();
+    if (!features->empty()) m.fpfh_tree->setInputCloud(features);
+  } else {
+    pcl::SHOTEstimationOMP<Point, Point, Shot> est(threads);
+    est.setInputCloud(m.cloud);
+    est.setIndices(indices);
+    est.setInputNormals(m.cloud);
+    est.setRadiusSearch(radius);
+    auto features = std::make_shared<pcl::PointCloud<Shot>>();
+    est.compute(*features);
+    m.keypoints = keep_valid(*m.cloud, *indices, *features);
+    m.shot = features;
+    m.shot_tree = std::make_shared<pcl::KdTreeFLANN<Shot>>();
+    if (!features->empty()) m.shot_tree->setInputCloud(features);
+  }
+}
+
+}  // namespace
+
+PreparedMap::PreparedMap() = default;
+PreparedMap::PreparedMap(std::shared_ptr<const Impl> impl) : impl_(std::move(impl)) {}
+double PreparedMap::resolution() const { return impl().resolution; }
+std::size_t PreparedMap::num_points() const { return impl().num_points; }
+std::size_t PreparedMap::num_filtered() const { return impl().cloud->size(); }
+std::size_t PreparedMap::num_keypoints() const { return impl().keypoints->size(); }
+const StageTimings& PreparedMap::timings() const { return impl().timings; }
+const PreparedMap::Impl& PreparedMap::impl() const {
+  if (!impl_) throw std::logic_error("PreparedMap is empty (use prepare_map)");
+  return *impl_;
+}
+
+PreparedMap prepare_map(const octomap::OcTree& tree, const AlignConfig& config) {
+  check_align_config(config);
+  const auto t_start = Clock::now();
+  auto m = std::make_shared<PreparedMap::Impl>();
+  m->resolution = tree.getResolution();
+  m->tree = std::make_shared<const octomap::OcTree>(tree);
+
+  auto t0 = Clock::now();
+  const std::vector<OccupiedPoint> points = to_points(tree, config.points);
+  if (points.empty()) throw std::invalid_argument("map has no occupied voxel");
+  m->num_points = points.size();
+  m->timings.to_points_ms = ms_since(t0);
+
+  t0 = Clock::now();
+  m->full = to_cloud(points);
+  m->full_tree = std::make_shared<pcl::KdTreeFLANN<Point>>();
+  m->full_tree->setInputCloud(m->full);
+  m->cloud = preprocess(m->full, config.preprocess, m->resolution);
+  if (m->cloud->size() < 10) throw std::invalid_argument("map has fewer than 10 points after preprocessing");
+  estimate_normals(*m->cloud, tree, config.preprocess, m->resolution);
+  m->cloud_tree = std::make_shared<pcl::KdTreeFLANN<Point>>();
+  m->cloud_tree->setInputCloud(m->cloud);
+  m->timings.preprocess_ms = ms_since(t0);
+
+  t0 = Clock::now();
+  const pcl::IndicesPtr indices = detect_iss(m->cloud, config.keypoints, m->resolution);
+  m->timings.keypoints_ms = ms_since(t0);
+
+  t0 = Clock::now();
+  describe(*m, indices, config.describe);
+  m->timings.describe_ms = ms_since(t0);
+  m->timings.total_ms = ms_since(t_start);
+  return PreparedMap(std::move(m));
+}
+
+std::vector<std::size_t> iss_keypoints(const std::vector<Eigen::Vector3f>& points,
+                                       const KeypointConfig& config, double resolution) {
+  auto cloud = std::make_shared<Cloud>();
+  for (const auto& p : points) {
+    Point q;
+    q.getVector3fMap() = p;
+    cloud->push_back(q);
+  }
+  const pcl::IndicesPtr indices = detect_iss(cloud, config, resolution);
+  return std::vector<std::size_t>(indices->begin(), indices->end());
+}
+
+}  // namespace mapmerge::align

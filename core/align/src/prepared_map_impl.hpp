@@ -1,0 +1,82 @@
+#pragma once
+/// Internal: what a PreparedMap holds. PCL types stay in this header and the *_pcl.cpp files.
+
+#include <algorithm>
+#include <cmath>
+#include <memory>
+#include <vector>
+
+#include <pcl/kdtree/kdtree_flann.h>
+#include <pcl/point_cloud.h>
+#include <pcl/point_types.h>
+
+#include "mapmerge/align/align.hpp"
+
+namespace mapmerge::align {
+
+using Point = pcl::PointXYZINormal;  ///< position, intensity = occupancy probability, normal
+using Cloud = pcl::PointCloud<Point>;
+using Fpfh = pcl::FPFHSignature33;
+using Shot = pcl::SHOT352;
+
+struct PreparedMap::Impl {
+  double resolution = 0.0;
+  std::shared_ptr<const octomap::OcTree> tree;  ///< copy of the map: free space for validation
+  std::size_t num_points = 0;                   ///< occupied voxels of stage 1
+  Cloud::Ptr full;                               ///< stage 1 at full resolution (validation)
+  pcl::KdTreeFLANN<Point>::Ptr full_tree;        ///< kd-tree over `full`
+  Cloud::Ptr cloud;                              ///< stage 2 output, with normals and occupancy
+  pcl::KdTreeFLANN<Point>::Ptr cloud_tree;       ///< kd-tree over `cloud`
+  Cloud::Ptr keypoints;                          ///< stage 4, only those with a valid descriptor
+  pcl::PointCloud<Fpfh>::Ptr fpfh;               ///< stage 5 when FPFH (one per keypoint)
+  pcl::PointCloud<Shot>::Ptr shot;               ///< stage 5 when SHOT
+  pcl::KdTreeFLANN<Fpfh>::Ptr fpfh_tree;
+  pcl::KdTreeFLANN<Shot>::Ptr shot_tree;
+  StageTimings timings;
+};
+
+/// A hypothesis of stage 6 with its correspondence consensus.
+struct Hypothesis {
+  Eigen::Matrix4d T_target_source = Eigen::Matrix4d::Identity();
+  std::size_t consensus = 0;  ///< correspondences agreeing [count]
+  int submodel = -1;
+};
+
+/// Stage 6 correspondences: source keypoint index -> target keypoint index.
+struct Match {
+  int source = 0;
+  int target = 0;
+  float distance = 0.0F;  ///< descriptor distance (squared L2)
+};
+
+/// Stage 6a: descriptor correspondences between all source and target keypoints.
+std::vector<Match> match_descriptors(const PreparedMap::Impl& target,
+                                     const PreparedMap::Impl& source, const MatchConfig& config);
+
+/// Stage 6b: hypotheses from the correspondences whose source keypoint is in `subset`
+/// (indices into source keypoints), with the configured method.
+std::vector<Hypothesis> generate_hypotheses(const PreparedMap::Impl& target,
+                                            const PreparedMap::Impl& source,
+                                            const std::vector<Match>& matches,
+                                            const std::vector<int>& subset,
+                                            const AlignConfig& config, unsigned seed);
+
+}  // namespace mapmerge::align
+
+namespace mapmerge::align {
+
+/// Rotation angle between two transforms [deg].
+inline double rotation_difference_deg(const Eigen::Matrix4d& a, const Eigen::Matrix4d& b) {
+  const Eigen::Matrix3d r = a.topLeftCorner<3, 3>().transpose() * b.topLeftCorner<3, 3>();
+  const double c = std::clamp((r.trace() - 1.0) / 2.0, -1.0, 1.0);
+  return std::acos(c) * 180.0 / M_PI;
+}
+
+/// True when the transforms differ by less than the given rotation [deg] and translation [m].
+inline bool same_pose(const Eigen::Matrix4d& a, const Eigen::Matrix4d& b, double rot_deg,
+                      double trans) {
+  return rotation_difference_deg(a, b) < rot_deg &&
+         (a.topRightCorner<3, 1>() - b.topRightCorner<3, 1>()).norm() < trans;
+}
+
+}  // namespace mapmerge::align
