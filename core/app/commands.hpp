@@ -8,5 +8,7 @@ namespace mapmerge::app {
 
 void add_merge_command(CLI::App& app, int& exit_code);
 void add_render_command(CLI::App& app, int& exit_code);
+void add_scenario_command(CLI::App& app, int& exit_code);
+void add_report_command(CLI::App& app, int& exit_code);
 
 }  // namespace mapmerge::app

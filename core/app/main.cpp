@@ -9,6 +9,8 @@ int main(int argc, char** argv) {
   int exit_code = 0;
   mapmerge::app::add_merge_command(app, exit_code);
   mapmerge::app::add_render_command(app, exit_code);
+  mapmerge::app::add_scenario_command(app, exit_code);
+  mapmerge::app::add_report_command(app, exit_code);
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
