@@ -1,0 +1,92 @@
+#include "tree_writer.hpp"
+
+#include <algorithm>
+
+namespace mapmerge::detail {
+namespace {
+
+using Base = octomap::OcTreeBaseImpl<octomap::OcTreeNode, octomap::AbstractOccupancyOcTree>;
+constexpr unsigned kTreeDepth = 16;
+
+/// OctoMap creates the root only inside updateNode(); these give TreeWriter the same access
+/// (pointers to protected members, formed through a derived class as the language allows).
+struct Internals : octomap::OcTree {
+  static constexpr auto kRoot = &Internals::root;
+  static constexpr auto kTreeSize = &Internals::tree_size;
+  static constexpr auto kSizeChanged = &Internals::size_changed;
+};
+
+}  // namespace
+
+TreeWriter::TreeWriter(octomap::OcTree& tree)
+    : tree_(tree),
+      min_log_odds_(tree.getClampingThresMinLog()),
+      max_log_odds_(tree.getClampingThresMaxLog()) {}
+
+float TreeWriter::clamp(float value) const {
+  return std::min(max_log_odds_, std::max(min_log_odds_, value));
+}
+
+octomap::OcTreeNode* TreeWriter::descend(const octomap::OcTreeKey& key, unsigned depth,
+                                         bool& fresh) {
+  Base& base = tree_;
+  octomap::OcTreeNode*& root = base.*Internals::kRoot;
+  fresh = false;
+  if (root == nullptr) {
+    root = new octomap::OcTreeNode();
+    ++(base.*Internals::kTreeSize);
+    base.*Internals::kSizeChanged = true;
+    path_depth_ = 0;
+    fresh = true;
+  }
+  path_[0] = root;
+  unsigned d = 0;
+  while (d < depth && d < path_depth_ &&
+         octomap::computeChildIdx(key, static_cast<int>(kTreeDepth - 1 - d)) ==
+             octomap::computeChildIdx(path_key_, static_cast<int>(kTreeDepth - 1 - d))) {
+    ++d;
+  }
+  octomap::OcTreeNode* node = path_[d];
+  for (; d < depth; ++d) {
+    const unsigned pos = octomap::computeChildIdx(key, static_cast<int>(kTreeDepth - 1 - d));
+    if (tree_.nodeChildExists(node, pos)) {
+      node = tree_.getNodeChild(node, pos);
+    } else if (!fresh && !tree_.nodeHasChildren(node)) {
+      tree_.expandNode(node);  // a pruned leaf: its children inherit its value
+      node = tree_.getNodeChild(node, pos);
+    } else {
+      node = tree_.createNodeChild(node, pos);  // unknown space: log-odds 0
+      fresh = true;
+    }
+    path_[d + 1] = node;
+  }
+  path_key_ = key;
+  path_depth_ = depth;
+  return node;
+}
+
+void TreeWriter::add_subtree(octomap::OcTreeNode* node, float delta) {
+  if (!tree_.nodeHasChildren(node)) {
+    node->setLogOdds(clamp(node->getLogOdds() + delta));
+    return;
+  }
+  for (unsigned i = 0; i < 8; ++i) {
+    if (tree_.nodeChildExists(node, i)) {
+      add_subtree(tree_.getNodeChild(node, i), delta);  // depth <= 16: bounded recursion
+    } else {
+      tree_.createNodeChild(node, i)->setLogOdds(clamp(delta));
+    }
+  }
+}
+
+void TreeWriter::add(const octomap::OcTreeKey& key, unsigned level, float delta) {
+  bool fresh = false;
+  octomap::OcTreeNode* node = descend(key, kTreeDepth - level, fresh);
+  if (fresh) {
+    node->setLogOdds(clamp(delta));
+  } else {
+    add_subtree(node, delta);
+  }
+}
+
+}  // namespace mapmerge::detail
