@@ -1,5 +1,8 @@
 #include "mapmerge/wire/cyclone.hpp"
 
+#include <dlfcn.h>
+
+#include <filesystem>
 #include <fstream>
 #include <map>
 #include <mutex>
@@ -65,6 +68,50 @@ void release_domain(int domain) {
   }
 }
 
+/// Where Cyclone's security plugins live: Debian installs them in libddsc0debian/ beside
+/// libddsc, outside the loader's search path, so give dlopen a full path when they are there.
+std::string security_plugin(const char* name) {
+  Dl_info info{};
+  if (dladdr(reinterpret_cast<void*>(&dds_create_participant), &info) != 0 && info.dli_fname != nullptr) {
+    const auto dir = std::filesystem::path(info.dli_fname).parent_path();
+    for (const char* sub : {"libddsc0debian", ""}) {
+      const auto path = dir / sub / (std::string("lib") + name + ".so");
+      if (std::filesystem::exists(path)) return path.string();
+    }
+  }
+  return name;  // Cyclone adds lib/.so and asks the loader
+}
+
+/// Participant QoS carrying the DDS Security properties of `security` (caller frees).
+dds_qos_t* security_qos(const SecurityOptions& security) {
+  SecurityFiles files;
+  try {
+    files = security.files();
+  } catch (const std::invalid_argument& e) {
+    throw CycloneError(e.what());
+  }
+  dds_qos_t* qos = dds_create_qos();
+  const std::pair<const char*, std::string> props[] = {
+      {"dds.sec.auth.library.path", security_plugin("dds_security_auth")},
+      {"dds.sec.auth.library.init", "init_authentication"},
+      {"dds.sec.auth.library.finalize", "finalize_authentication"},
+      {"dds.sec.auth.identity_ca", "file:" + files.identity_ca},
+      {"dds.sec.auth.identity_certificate", "file:" + files.certificate},
+      {"dds.sec.auth.private_key", "file:" + files.private_key},
+      {"dds.sec.access.library.path", security_plugin("dds_security_ac")},
+      {"dds.sec.access.library.init", "init_access_control"},
+      {"dds.sec.access.library.finalize", "finalize_access_control"},
+      {"dds.sec.access.permissions_ca", "file:" + files.permissions_ca},
+      {"dds.sec.access.governance", "file:" + files.governance},
+      {"dds.sec.access.permissions", "file:" + files.permissions},
+      {"dds.sec.crypto.library.path", security_plugin("dds_security_crypto")},
+      {"dds.sec.crypto.library.init", "init_crypto"},
+      {"dds.sec.crypto.library.finalize", "finalize_crypto"},
+  };
+  for (const auto& [name, value] : props) dds_qset_prop(qos, name, value.c_str());
+  return qos;
+}
+
 }  // namespace
 
 dds_qos_t* make_cyclone_qos(TopicKind kind) {
@@ -81,13 +128,17 @@ dds_qos_t* make_cyclone_qos(TopicKind kind) {
   return qos;
 }
 
-CycloneParticipant::CycloneParticipant(int domain, const ProfileSpec& profile) : domain_(domain) {
+CycloneParticipant::CycloneParticipant(int domain, const ProfileSpec& profile, const SecurityOptions& security)
+    : domain_(domain) {
+  dds_qos_t* qos = security.enabled() ? security_qos(security) : nullptr;
   acquire_domain(domain, profile);
-  participant_ = dds_create_participant(static_cast<dds_domainid_t>(domain), nullptr, nullptr);
+  participant_ = dds_create_participant(static_cast<dds_domainid_t>(domain), qos, nullptr);
+  if (qos != nullptr) dds_delete_qos(qos);
   if (participant_ < 0) {
     const std::string why = dds_strretcode(participant_);
     release_domain(domain);
-    throw CycloneError("cannot create Cyclone DDS participant on domain " + std::to_string(domain) + ": " + why);
+    throw CycloneError("cannot create Cyclone DDS participant on domain " + std::to_string(domain) + ": " + why +
+                       " (security " + security.describe() + ")");
   }
 }
 

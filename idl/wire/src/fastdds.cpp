@@ -80,6 +80,32 @@ void use_discovery_server(dds::DomainParticipantQos& qos, const std::string& add
   qos.wire_protocol().builtin.initialPeersList.clear();
 }
 
+/// DDS Security with the builtin plugins: PKI-DH authentication, signed governance and
+/// permissions, AES-GCM-GMAC. Throws if the enclave's files are missing (never falls back to
+/// an insecure participant).
+void use_security(dds::DomainParticipantQos& qos, const SecurityOptions& security) {
+  const SecurityFiles files = security.files();
+  auto& props = qos.properties().properties();
+  auto set = [&props](const std::string& name, const std::string& value) {
+    for (auto& p : props) {
+      if (p.name() == name) {
+        p.value(value);
+        return;
+      }
+    }
+    props.emplace_back(name, value);
+  };
+  set("dds.sec.auth.plugin", "builtin.PKI-DH");
+  set("dds.sec.auth.builtin.PKI-DH.identity_ca", "file:" + files.identity_ca);
+  set("dds.sec.auth.builtin.PKI-DH.identity_certificate", "file:" + files.certificate);
+  set("dds.sec.auth.builtin.PKI-DH.private_key", "file:" + files.private_key);
+  set("dds.sec.access.plugin", "builtin.Access-Permissions");
+  set("dds.sec.access.builtin.Access-Permissions.permissions_ca", "file:" + files.permissions_ca);
+  set("dds.sec.access.builtin.Access-Permissions.governance", "file:" + files.governance);
+  set("dds.sec.access.builtin.Access-Permissions.permissions", "file:" + files.permissions);
+  set("dds.sec.crypto.plugin", "builtin.AES-GCM-GMAC");
+}
+
 }  // namespace
 
 FastddsParticipant::FastddsParticipant(const ParticipantOptions& options,
@@ -89,11 +115,20 @@ FastddsParticipant::FastddsParticipant(const ParticipantOptions& options,
   dds::DomainParticipantQos qos = participant_qos(options.profile);
   if (!options.name.empty()) qos.name(options.name);
   if (!options.profile.discovery_server.empty()) use_discovery_server(qos, options.profile.discovery_server);
+  if (options.security.enabled()) {
+    try {
+      use_security(qos, options.security);
+    } catch (const std::invalid_argument& e) {
+      throw DdsError(e.what());
+    }
+  }
   auto* factory = dds::DomainParticipantFactory::get_instance();
   participant_ = factory->create_participant(options.domain, qos, listener, mask);
   if (participant_ == nullptr) {
     throw DdsError("cannot create Fast DDS participant on domain " + std::to_string(options.domain) +
-                   " with profile " + options.profile.describe());
+                   " with profile " + options.profile.describe() +
+                   ", security " + options.security.describe() +
+                   (options.security.enabled() ? " (rejected identity, permissions or governance?)" : ""));
   }
   publisher_ = participant_->create_publisher(dds::PUBLISHER_QOS_DEFAULT);
   subscriber_ = participant_->create_subscriber(dds::SUBSCRIBER_QOS_DEFAULT);

@@ -7,6 +7,7 @@
 #include <dds/dds.h>
 
 #include "mapmerge/wire/profile.hpp"
+#include "mapmerge/wire/security.hpp"
 
 namespace mapmerge::wire {
 
@@ -18,9 +19,12 @@ class CycloneError : public std::runtime_error {
 
 /// One Cyclone DDS participant in a domain configured from a mapmerge profile. Deleting it
 /// deletes every entity it created. Several may share a domain within one process.
+/// With `security` enabled the participant uses DDS Security (Cyclone's builtin plugins, set
+/// through participant QoS properties); a secure participant's writers and readers are refused
+/// (CycloneError) on topics its permissions do not grant.
 class CycloneParticipant {
  public:
-  CycloneParticipant(int domain, const ProfileSpec& profile);
+  CycloneParticipant(int domain, const ProfileSpec& profile, const SecurityOptions& security = {});
   ~CycloneParticipant();
   CycloneParticipant(const CycloneParticipant&) = delete;
   CycloneParticipant& operator=(const CycloneParticipant&) = delete;

@@ -16,6 +16,7 @@
 #include <fastdds/dds/topic/TypeSupport.hpp>
 
 #include "mapmerge/wire/profile.hpp"
+#include "mapmerge/wire/security.hpp"
 
 namespace mapmerge::wire {
 
@@ -29,6 +30,7 @@ struct ParticipantOptions {
   int domain = 0;        ///< DDS domain id (0..101 on hosts with the default port range)
   ProfileSpec profile;   ///< network configuration
   std::string name;      ///< participant name shown in discovery tools
+  SecurityOptions security;  ///< DDS Security identity (scripts/make-keystore); default: off
 };
 
 /// One Fast DDS participant with one publisher and one subscriber. Everything it created is
