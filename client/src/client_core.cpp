@@ -1,0 +1,394 @@
+#include "client_core.hpp"
+
+#include <random>
+#include <sstream>
+
+#include <unistd.h>
+
+#include "mapmerge/map/map_codec.hpp"
+#include "mapmerge/map/map_io.hpp"
+#include "mapmerge/wire/topics.hpp"
+
+namespace mapmerge::client::detail {
+namespace {
+
+constexpr std::size_t kMaxPoseInbox = 4096;  ///< poses queued for callbacks; oldest dropped beyond
+
+std::string random_hex(int digits) {
+  std::random_device rd;
+  std::mt19937_64 rng((std::uint64_t(rd()) << 32) ^ rd() ^
+                      std::uint64_t(std::chrono::steady_clock::now().time_since_epoch().count()));
+  std::ostringstream ss;
+  ss << std::hex;
+  for (int i = 0; i < digits; ++i) ss << (rng() & 0xF);
+  return ss.str();
+}
+
+TransportConfig transport_config(const Options& options) {
+  TransportConfig c;
+  c.domain = options.domain;
+  try {
+    c.profile = wire::ProfileSpec::parse(options.profile);
+  } catch (const std::invalid_argument& e) {
+    throw ClientError(e.what());
+  }
+  c.profile.discovery_server = options.discovery_server;
+  c.robot_id = options.robot_id;
+  c.receive_global_map = options.receive_global_map;
+  c.participant_name = "mapmerge-client/" + (options.robot_id.empty() ? std::string("observer") : options.robot_id);
+  return c;
+}
+
+Options validated(Options options) {
+  if (const std::string error = check_options(options); !error.empty()) throw ClientError(error);
+  if (options.frame_id.empty() && !options.robot_id.empty()) options.frame_id = options.robot_id + "/map";
+  if (options.session_id.empty()) options.session_id = process_session_id();
+  if (options.max_block.count() < 0) options.max_block = std::chrono::milliseconds(0);
+  if (options.poll_period.count() <= 0) options.poll_period = std::chrono::milliseconds(100);
+  return options;
+}
+
+template <class Callback, class... Args>
+void invoke(const std::optional<Callback>& slot, Args&&... args) {
+  if (slot && *slot) (*slot)(std::forward<Args>(args)...);
+}
+
+}  // namespace
+
+const std::string& process_session_id() {
+  static const std::string id = random_hex(16);
+  return id;
+}
+
+MapMessage make_map_message(const octomap::OcTree& tree, const Options& options,
+                            const std::string& session_id, std::uint64_t sequence_number) {
+  const Encoding encoding = options.zstd ? Encoding::kOctomapBtZstd : Encoding::kOctomapBt;
+  EncodeOptions encode_options;
+  encode_options.zstd_level = options.zstd_level;
+  MapMessage m;
+  m.data = encode_map(tree, encoding, encode_options);
+  m.encoding = to_string(encoding);
+  m.robot_id = options.robot_id;
+  m.session_id = session_id;
+  m.sequence_number = sequence_number;
+  const auto now = std::chrono::system_clock::now().time_since_epoch();
+  const auto ns = std::chrono::duration_cast<std::chrono::nanoseconds>(now).count();
+  m.stamp_sec = static_cast<std::int32_t>(ns / 1000000000);
+  m.stamp_nanosec = static_cast<std::uint32_t>(ns % 1000000000);
+  m.frame_id = options.frame_id;
+  m.resolution = tree.getResolution();
+  return m;
+}
+
+std::shared_ptr<const GlobalMap> decode_global_map(GlobalMapMessage&& message, std::size_t max_bytes,
+                                                   std::string& error) {
+  DecodeLimits limits;
+  limits.max_bytes = max_bytes;
+  DecodeResult decoded = decode_map(message.data, message.encoding, limits);
+  if (!decoded.ok()) {
+    error = "global map version " + std::to_string(message.version) + " rejected: " + decoded.reason;
+    return nullptr;
+  }
+  auto map = std::make_shared<GlobalMap>();
+  map->version = message.version;
+  map->frame_id = std::move(message.frame_id);
+  map->resolution = message.resolution;
+  map->stamp = message.stamp;
+  map->encoding = std::move(message.encoding);
+  map->payload_bytes = message.data.size();
+  map->contributors = std::move(message.contributors);
+  map->tree = std::shared_ptr<const octomap::OcTree>(std::move(decoded.tree));
+  return map;
+}
+
+ClientCore::ClientCore(Options options, Vendor vendor) : options_(validated(std::move(options))), vendor_(vendor) {
+  requester_ = options_.robot_id.empty() ? "observer_" + options_.session_id + "_" + std::to_string(::getpid())
+                                         : options_.robot_id;
+  TransportEvents events;
+  events.pose = [this](Pose&& p) { on_pose(std::move(p)); };
+  events.global_map = [this](GlobalMapMessage&& m) { on_global_map(std::move(m)); };
+  const TransportConfig config = transport_config(options_);
+  transport_ = vendor_ == Vendor::kCyclone ? make_cyclone_transport(config, std::move(events))
+                                           : make_fastdds_transport(config, std::move(events));
+  dispatch_thread_ = std::thread([this] { dispatch_loop(); });
+  send_thread_ = std::thread([this] { send_loop(); });
+}
+
+ClientCore::~ClientCore() {
+  stop_ = true;
+  {
+    std::lock_guard<std::mutex> lock(inbox_mutex_);
+  }
+  inbox_cv_.notify_all();
+  {
+    std::lock_guard<std::mutex> lock(send_mutex_);
+  }
+  send_cv_.notify_all();
+  if (dispatch_thread_.joinable()) dispatch_thread_.join();
+  if (send_thread_.joinable()) send_thread_.join();
+  transport_.reset();  // no DDS callback after this
+}
+
+PublishResult ClientCore::publish(const octomap::OcTree& tree) {
+  PublishResult result;
+  if (options_.robot_id.empty()) {
+    result.error = "this client observes only (no robot id): nothing to publish";
+    return result;
+  }
+  std::uint64_t sequence = 0;
+  {
+    std::lock_guard<std::mutex> lock(state_mutex_);
+    sequence = next_sequence_++;
+  }
+  MapMessage message;
+  try {
+    message = make_map_message(tree, options_, options_.session_id, sequence);
+  } catch (const std::exception& e) {
+    result.error = std::string("cannot serialise the map: ") + e.what();
+    return result;
+  }
+  result.sequence_number = sequence;
+  result.bytes = message.data.size();
+  result.encoding = message.encoding;
+  bool replaced = false;
+  {
+    std::lock_guard<std::mutex> lock(send_mutex_);
+    replaced = outbox_.has_value();
+    outbox_ = std::move(message);
+  }
+  send_cv_.notify_all();
+  if (replaced) {
+    std::lock_guard<std::mutex> lock(state_mutex_);
+    ++stats_.updates_coalesced;
+  }
+  result.queued = true;
+  return result;
+}
+
+void ClientCore::send_loop() {
+  std::unique_lock<std::mutex> lock(send_mutex_);
+  while (!stop_) {
+    send_cv_.wait(lock, [this] { return stop_ || outbox_.has_value(); });
+    if (stop_) break;
+    MapMessage message = std::move(*outbox_);
+    outbox_.reset();
+    sending_ = true;
+    lock.unlock();
+    const bool ok = transport_->write_map(message);
+    {
+      std::lock_guard<std::mutex> state_lock(state_mutex_);
+      ++(ok ? stats_.updates_published : stats_.write_failures);
+    }
+    lock.lock();
+    sending_ = false;
+    send_cv_.notify_all();  // flush() waits for this; failures are reported by the dispatch thread
+  }
+}
+
+bool ClientCore::flush(std::chrono::milliseconds timeout) {
+  const auto deadline = std::chrono::steady_clock::now() + timeout;
+  {
+    std::unique_lock<std::mutex> lock(send_mutex_);
+    if (!send_cv_.wait_until(lock, deadline, [this] { return stop_ || (!outbox_ && !sending_); })) return false;
+  }
+  const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
+  return transport_->wait_for_acks(std::max(left, std::chrono::milliseconds(0)));
+}
+
+bool ClientCore::server_connected() const { return transport_->matched_servers() > 0; }
+
+bool ClientCore::wait_for_server(std::chrono::milliseconds timeout) {
+  const auto deadline = std::chrono::steady_clock::now() + timeout;
+  for (;;) {
+    if (server_connected()) return true;
+    if (std::chrono::steady_clock::now() >= deadline) return false;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+}
+
+void ClientCore::request_global_map() {
+  {
+    std::lock_guard<std::mutex> lock(inbox_mutex_);
+    request_pending_ = true;
+  }
+  inbox_cv_.notify_all();
+}
+
+std::optional<Pose> ClientCore::pose(const std::string& robot_id) const {
+  std::lock_guard<std::mutex> lock(state_mutex_);
+  auto it = poses_.find(robot_id);
+  if (it == poses_.end()) return std::nullopt;
+  return it->second;
+}
+
+std::vector<Pose> ClientCore::poses() const {
+  std::lock_guard<std::mutex> lock(state_mutex_);
+  std::vector<Pose> out;
+  for (const auto& [id, p] : poses_) out.push_back(p);
+  return out;
+}
+
+std::shared_ptr<const GlobalMap> ClientCore::global_map() const {
+  std::lock_guard<std::mutex> lock(state_mutex_);
+  return global_map_;
+}
+
+Statistics ClientCore::statistics() const {
+  std::lock_guard<std::mutex> lock(state_mutex_);
+  return stats_;
+}
+
+#define MAPMERGE_SET_CALLBACK(method, slot, Type)       \
+  void ClientCore::method(Type cb) {                    \
+    {                                                   \
+      std::lock_guard<std::mutex> lock(inbox_mutex_);   \
+      pending_.slot = std::move(cb);                    \
+      callbacks_pending_ = true;                        \
+    }                                                   \
+    inbox_cv_.notify_all();                             \
+  }
+MAPMERGE_SET_CALLBACK(set_own_pose_callback, own_pose, PoseCallback)
+MAPMERGE_SET_CALLBACK(set_pose_callback, pose, PoseCallback)
+MAPMERGE_SET_CALLBACK(set_global_map_callback, map, GlobalMapCallback)
+MAPMERGE_SET_CALLBACK(set_connection_callback, connection, ConnectionCallback)
+MAPMERGE_SET_CALLBACK(set_warning_callback, warning, WarningCallback)
+#undef MAPMERGE_SET_CALLBACK
+
+void ClientCore::install_callbacks(Callbacks&& pending) {
+  if (pending.warning) active_.warning = std::move(pending.warning);
+  const auto snapshot = poses();
+  if (pending.own_pose) {
+    active_.own_pose = std::move(pending.own_pose);
+    if (*active_.own_pose) {
+      for (const Pose& p : snapshot) {
+        if (p.robot_id == options_.robot_id) (*active_.own_pose)(p);
+      }
+    }
+  }
+  if (pending.pose) {
+    active_.pose = std::move(pending.pose);
+    if (*active_.pose) {
+      for (const Pose& p : snapshot) (*active_.pose)(p);
+    }
+  }
+  if (pending.map) {
+    active_.map = std::move(pending.map);
+    const auto map = global_map();
+    if (*active_.map && map) (*active_.map)(map);
+  }
+  if (pending.connection) {
+    active_.connection = std::move(pending.connection);
+    if (*active_.connection && was_connected_) (*active_.connection)(true);
+  }
+}
+
+void ClientCore::on_pose(Pose&& pose) {
+  {
+    std::lock_guard<std::mutex> lock(inbox_mutex_);
+    if (pose_inbox_.size() >= kMaxPoseInbox) pose_inbox_.pop_front();
+    pose_inbox_.push_back(std::move(pose));
+  }
+  inbox_cv_.notify_all();
+}
+
+void ClientCore::on_global_map(GlobalMapMessage&& message) {
+  {
+    std::lock_guard<std::mutex> lock(inbox_mutex_);
+    map_inbox_ = std::move(message);
+  }
+  inbox_cv_.notify_all();
+}
+
+void ClientCore::warn(const std::string& message) { invoke(active_.warning, message); }
+
+void ClientCore::check_connection() {
+  const bool connected = server_connected();
+  if (connected == was_connected_) return;
+  was_connected_ = connected;
+  // A server that (re)appears gets asked for the current state: transient-local delivery to
+  // late joiners is not guaranteed by every vendor.
+  if (connected && !transport_->write_request(requester_, ++nonce_)) warn("map request could not be written");
+  invoke(active_.connection, connected);
+}
+
+void ClientCore::dispatch_loop() {
+  std::uint64_t failures_reported = 0;
+  while (!stop_) {
+    std::deque<Pose> poses;
+    std::optional<GlobalMapMessage> map;
+    bool request = false;
+    Callbacks callbacks;
+    bool install = false;
+    {
+      std::unique_lock<std::mutex> lock(inbox_mutex_);
+      inbox_cv_.wait_for(lock, options_.poll_period,
+                         [this] { return stop_ || !pose_inbox_.empty() || map_inbox_ || request_pending_ || callbacks_pending_; });
+      if (stop_) break;
+      poses.swap(pose_inbox_);
+      map.swap(map_inbox_);
+      request = std::exchange(request_pending_, false);
+      install = std::exchange(callbacks_pending_, false);
+      if (install) callbacks = std::exchange(pending_, Callbacks{});
+    }
+    if (install) install_callbacks(std::move(callbacks));
+    check_connection();
+    if (request && !transport_->write_request(requester_, ++nonce_)) warn("map request could not be written");
+    for (Pose& p : poses) {
+      {
+        std::lock_guard<std::mutex> lock(state_mutex_);
+        ++stats_.poses_received;
+        poses_[p.robot_id] = p;
+      }
+      if (p.robot_id == options_.robot_id) invoke(active_.own_pose, p);
+      invoke(active_.pose, p);
+    }
+    if (map) {
+      std::string error;
+      auto decoded = decode_global_map(std::move(*map), options_.max_global_map_bytes, error);
+      {
+        std::lock_guard<std::mutex> lock(state_mutex_);
+        ++(decoded ? stats_.global_maps_received : stats_.global_maps_rejected);
+        if (decoded) global_map_ = decoded;
+      }
+      if (decoded) {
+        invoke(active_.map, decoded);
+      } else {
+        warn(error);
+      }
+    }
+    std::uint64_t failures = 0;
+    {
+      std::lock_guard<std::mutex> lock(state_mutex_);
+      failures = stats_.write_failures;
+    }
+    if (failures > failures_reported) {
+      failures_reported = failures;
+      warn("map update could not be written (" + std::to_string(failures) + " failures so far)");
+    }
+  }
+}
+
+}  // namespace mapmerge::client::detail
+
+namespace mapmerge::client {
+
+std::string check_options(const Options& options) {
+  if (!options.robot_id.empty() && !wire::is_valid_robot_id(options.robot_id)) {
+    return "invalid robot id '" + options.robot_id +
+           "' (a letter, then letters, digits or '_', at most 64 characters)";
+  }
+  if (options.domain < 0 || options.domain > 232) {
+    return "DDS domain " + std::to_string(options.domain) + " out of range 0..232";
+  }
+  if (options.zstd_level < 1 || options.zstd_level > 19) {
+    return "zstd level " + std::to_string(options.zstd_level) + " out of range 1..19";
+  }
+  try {
+    wire::ProfileSpec::parse(options.profile);
+  } catch (const std::invalid_argument& e) {
+    return e.what();
+  }
+  return {};
+}
+
+}  // namespace mapmerge::client
