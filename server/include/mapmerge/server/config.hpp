@@ -1,0 +1,57 @@
+#pragma once
+/// Settings of mapmerge-server: plain structs, filled from YAML and then from the command line.
+
+#include <string>
+
+#include "mapmerge/align/config.hpp"
+#include "mapmerge/map/map_codec.hpp"
+
+namespace mapmerge::server {
+
+/// How the server talks DDS (read by DdsIo).
+struct NetworkConfig {
+  int domain = 0;                    ///< DDS domain id (0..101)
+  std::string profile = "local";     ///< "local", "default" or a Fast DDS XML file
+  std::string discovery_server;      ///< "HOST:PORT" of a Fast DDS discovery server; empty: none
+  std::string ros_octomap_pattern = "rt/{robot}/octomap_binary";  ///< ROS 2 map topics, "{robot}" = id
+};
+
+/// The merge policy (read by Pipeline and Scheduler).
+struct MergeConfig {
+  int threads = 2;                   ///< worker threads running merges [count]
+  std::string reference;             ///< robot defining the global frame; empty: the first heard
+  std::string global_frame = "global";  ///< frame id of the global map and poses
+  double global_resolution = 0.0;    ///< voxel edge of the global map [m]; 0: the reference's
+  bool refine_known = true;          ///< refine a known robot's transform when its map changes
+};
+
+/// When the global map and poses go out (read by the server's main loop).
+struct PublishConfig {
+  double min_interval_s = 0.2;       ///< at most one global map per this period [s]
+  double republish_period_s = 2.0;   ///< republish map and poses this often for late joiners [s]
+  double status_period_s = 1.0;      ///< server status this often [s]
+  std::string global_encoding = "octomap-bt";  ///< encoding of the native global map
+};
+
+/// Where and how the registry persists (read by Store).
+struct StoreConfig {
+  std::string state_dir;             ///< directory of state.sqlite; empty: no persistence
+  bool synchronous_full = true;      ///< SQLite synchronous=FULL (else NORMAL: safe for crashes, not power loss)
+};
+
+struct ServerConfig {
+  NetworkConfig network;
+  MergeConfig merge;
+  PublishConfig publish;
+  StoreConfig store;
+  DecodeLimits limits;               ///< bounds every incoming map must respect
+  align::AlignConfig align;          ///< the registration pipeline (core/align)
+};
+
+/// Reads a YAML file with sections `network`, `merge`, `publish`, `store`, `limits` and
+/// `align` (core/align's format). Missing keys keep defaults; unknown keys throw
+/// align::ConfigError.
+ServerConfig load_server_config(const std::string& yaml_path);
+ServerConfig parse_server_config(const std::string& yaml_text);
+
+}  // namespace mapmerge::server

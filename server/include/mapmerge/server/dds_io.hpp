@@ -1,0 +1,43 @@
+#pragma once
+/// The server's DDS side (Fast DDS): discovers robots' map topics as they appear (native
+/// rt/<robot>/mapmerge/map and ROS 2 octomap topics by pattern), reads them, answers map
+/// requests, and publishes the global map, poses, tf and status. No merge logic here.
+
+#include <functional>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "mapmerge/server/config.hpp"
+#include "mapmerge/server/messages.hpp"
+
+namespace mapmerge::server {
+
+class DdsIo {
+ public:
+  struct Callbacks {
+    std::function<void(MapSample)> on_map;                       ///< a robot map arrived
+    std::function<void(const std::string& requester)> on_request;  ///< someone asked for a republish
+    std::function<void()> on_discovery;                          ///< a robot topic appeared: call service()
+  };
+
+  /// Creates the participant and the server's writers/readers. Throws wire::DdsError.
+  DdsIo(const NetworkConfig& config, Callbacks callbacks);
+  ~DdsIo();
+  DdsIo(const DdsIo&) = delete;
+  DdsIo& operator=(const DdsIo&) = delete;
+
+  /// Subscribes to robot topics discovered since the last call; returns their names.
+  std::vector<std::string> service();
+
+  void publish_global(const GlobalMapOut& global);
+  /// Native poses (one sample per robot) and, for aligned robots, tf global -> <robot frame>.
+  void publish_poses(const std::vector<PoseOut>& poses, std::uint64_t version, const std::string& global_frame);
+  void publish_status(const StatusOut& status);
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace mapmerge::server

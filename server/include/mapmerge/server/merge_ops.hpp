@@ -1,0 +1,50 @@
+#pragma once
+/// The only place the server calls core: decoding a received map, preparing it for alignment,
+/// pairwise alignment (global or local) and fusion of the aligned maps. Each is one function,
+/// so the server follows core's API in one file.
+
+#include <memory>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include <Eigen/Core>
+#include <octomap/OcTree.h>
+
+#include "mapmerge/align/align.hpp"
+#include "mapmerge/map/map_codec.hpp"
+#include "mapmerge/server/messages.hpp"
+
+namespace mapmerge::server {
+
+struct DecodedMap {
+  std::shared_ptr<const octomap::OcTree> tree;  ///< null when rejected
+  std::string reason;                           ///< why rejected
+};
+
+/// Validates and decodes a received map (native payload or ROS 2 tree body); a robot id that
+/// does not match its topic is rejected too.
+DecodedMap decode_sample(const MapSample& sample, const DecodeLimits& limits);
+
+/// Alignment features of a map; null with `error` set for a map that cannot be aligned.
+std::shared_ptr<const align::PreparedMap> prepare(const octomap::OcTree& tree,
+                                                  const align::AlignConfig& config, std::string& error);
+
+/// Global search for T_target_source (no initial guess).
+align::AlignResult align_global(const align::PreparedMap& target, const align::PreparedMap& source,
+                                const align::AlignConfig& config);
+
+/// Local refinement from a known T_target_source.
+align::AlignResult align_local(const align::PreparedMap& target, const align::PreparedMap& source,
+                               const Eigen::Matrix4d& T_target_source, const align::AlignConfig& config);
+
+/// One robot's map with its pose in the global frame.
+struct PlacedMap {
+  std::shared_ptr<const octomap::OcTree> tree;
+  Eigen::Matrix4d T_global_robot = Eigen::Matrix4d::Identity();
+};
+
+/// Fuses the maps into a new global tree of `resolution` [m] (log-odds addition, resampled).
+std::unique_ptr<octomap::OcTree> fuse_global(const std::vector<PlacedMap>& maps, double resolution);
+
+}  // namespace mapmerge::server

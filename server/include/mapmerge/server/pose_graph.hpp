@@ -1,0 +1,36 @@
+#pragma once
+/// Global poses from accepted pairwise alignments: every robot connected to the reference gets
+/// T_global_robot by composing the transforms along the best path (edges weighted by fitness).
+
+#include <map>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+
+namespace mapmerge::server {
+
+/// An accepted pairwise alignment: T_target_source maps source-map points into the target map.
+struct Edge {
+  std::string target;
+  std::string source;
+  Eigen::Matrix4d T_target_source = Eigen::Matrix4d::Identity();
+  double fitness = 0.0;  ///< mean inlier distance [m]; lower is better
+};
+
+struct GlobalPose {
+  Eigen::Matrix4d T_global_robot = Eigen::Matrix4d::Identity();
+  double fitness = 0.0;  ///< worst fitness along the path [m]; 0 for the reference
+  int hops = 0;          ///< edges between the robot and the reference
+};
+
+/// Poses of every robot reachable from `reference` (which gets the identity). Path cost is the
+/// sum over edges of (fitness + hop_cost); robots not reachable are absent from the result.
+std::map<std::string, GlobalPose> global_poses(const std::string& reference,
+                                               const std::vector<Edge>& edges,
+                                               double hop_cost = 0.01);
+
+/// Inverse of a rigid transform.
+Eigen::Matrix4d rigid_inverse(const Eigen::Matrix4d& T);
+
+}  // namespace mapmerge::server

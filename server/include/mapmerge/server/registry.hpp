@@ -1,0 +1,88 @@
+#pragma once
+/// The registry: per robot, its latest accepted map, where it came from (session, sequence),
+/// its counters, and the accepted pairwise alignments between robots. Thread-safe.
+
+#include <cstdint>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <set>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include <octomap/OcTree.h>
+
+#include "mapmerge/align/align.hpp"
+#include "mapmerge/server/pose_graph.hpp"
+
+namespace mapmerge::server {
+
+enum class RobotStatus { kUnknown, kAligned, kRejected };
+const char* to_string(RobotStatus status);
+
+struct RobotRecord {
+  std::string robot_id;
+  std::string session_id;            ///< the robot's boot/session; a new one restarts numbering
+  std::uint64_t sequence = 0;        ///< sequence number of the map held
+  std::string frame_id;              ///< the robot's map frame
+  double resolution = 0.0;           ///< [m]
+  double received_unix = 0.0;        ///< arrival time of the map held [s since epoch]
+  std::shared_ptr<const octomap::OcTree> tree;             ///< null until a map was accepted
+  std::shared_ptr<const align::PreparedMap> prepared;      ///< alignment features of `tree`
+  std::uint64_t map_revision = 0;    ///< counts accepted maps of this robot (in memory)
+  std::set<std::string> tried;       ///< robots a global search of this revision already failed against
+  std::uint64_t updates_accepted = 0;
+  std::uint64_t updates_rejected = 0;
+  std::string last_error;            ///< reason of the last rejected update
+};
+
+/// Whether an update with (session, sequence) is new for its robot.
+enum class Admission { kNew, kNewSession, kDuplicate, kOutOfOrder };
+const char* to_string(Admission a);
+
+class Registry {
+ public:
+  /// Decides on (and remembers) an incoming update's key; called before any decoding.
+  Admission admit(const std::string& robot, const std::string& session, std::uint64_t sequence);
+
+  /// Installs an accepted map (record fields other than counters and alignment are replaced).
+  void put_map(RobotRecord record);
+  /// Counts a rejected update of `robot` with its reason.
+  void reject(const std::string& robot, const std::string& reason);
+  void set_prepared(const std::string& robot, std::uint64_t revision,
+                    std::shared_ptr<const align::PreparedMap> prepared);
+  void mark_tried(const std::string& robot, std::uint64_t revision, const std::string& other);
+
+  /// Adds or replaces the edge between target and source.
+  void put_edge(const Edge& edge);
+  std::vector<Edge> edges() const;
+  std::vector<Edge> edges_of(const std::string& robot) const;
+
+  /// The robot defining the global frame; set once (by config, the store, or the first map).
+  std::string reference() const;
+  /// Sets the reference if none is set yet; returns the reference in force.
+  std::string claim_reference(const std::string& robot);
+
+  std::shared_ptr<const RobotRecord> get(const std::string& robot) const;
+  std::vector<std::shared_ptr<const RobotRecord>> all() const;
+  /// Global poses of the robots connected to the reference that hold a map.
+  std::map<std::string, GlobalPose> poses() const;
+  RobotStatus status(const std::string& robot) const;
+
+ private:
+  struct Seen {
+    std::string session;
+    std::uint64_t sequence = 0;
+  };
+  RobotRecord& mutable_record(const std::string& robot);
+  std::map<std::string, GlobalPose> poses_locked() const;
+
+  mutable std::mutex mutex_;
+  std::map<std::string, Seen> seen_;
+  std::map<std::string, std::shared_ptr<RobotRecord>> records_;
+  std::map<std::pair<std::string, std::string>, Edge> edges_;
+  std::string reference_;
+};
+
+}  // namespace mapmerge::server

@@ -1,0 +1,72 @@
+#pragma once
+/// Runs per-robot work on a pool of threads with coalescing: each robot has one slot holding
+/// its latest unprocessed map (a newer one replaces it: latest wins) and a retry flag. A robot
+/// is queued at most once and processed by at most one thread at a time, so the queue is
+/// bounded by the number of robots whatever the publishers' rates.
+
+#include <atomic>
+#include <condition_variable>
+#include <cstdint>
+#include <deque>
+#include <functional>
+#include <map>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "mapmerge/server/messages.hpp"
+
+namespace mapmerge::server {
+
+struct SchedulerStats {
+  std::uint64_t submitted = 0;   ///< maps handed in [count]
+  std::uint64_t coalesced = 0;   ///< maps replaced by a newer one before being processed [count]
+  std::uint64_t jobs_run = 0;    ///< jobs finished [count]
+  std::size_t queued = 0;        ///< robots waiting now [count]
+  std::size_t max_queued = 0;    ///< most robots ever waiting at once [count]
+};
+
+class Scheduler {
+ public:
+  /// The work for one robot: its newest map if one arrived, and whether a retry was asked.
+  using Job = std::function<void(const std::string& robot, std::optional<MapSample> map, bool retry)>;
+
+  Scheduler(int threads, Job job);
+  ~Scheduler();  ///< stops and joins
+  Scheduler(const Scheduler&) = delete;
+  Scheduler& operator=(const Scheduler&) = delete;
+
+  /// Hands in a robot's map (replacing any unprocessed one).
+  void submit(MapSample map);
+  /// Asks for `robot` to be processed again without a new map (e.g. new alignment partners).
+  void retry(const std::string& robot);
+  /// Finishes running jobs, drops waiting ones, joins the threads. Idempotent.
+  void stop();
+  SchedulerStats stats() const;
+  /// True when nothing is queued or running.
+  bool idle() const;
+
+ private:
+  struct Slot {
+    std::optional<MapSample> map;
+    bool retry = false;
+    bool busy = false;
+    bool queued = false;
+  };
+  void enqueue_locked(const std::string& robot, Slot& slot);
+  void worker();
+
+  Job job_;
+  mutable std::mutex mutex_;
+  std::condition_variable cv_;
+  std::map<std::string, Slot> slots_;
+  std::deque<std::string> ready_;
+  std::vector<std::thread> threads_;
+  bool stopping_ = false;
+  int running_ = 0;
+  SchedulerStats stats_;
+};
+
+}  // namespace mapmerge::server

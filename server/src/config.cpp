@@ -1,0 +1,119 @@
+#include "mapmerge/server/config.hpp"
+
+#include <fstream>
+#include <set>
+#include <sstream>
+
+#include <yaml-cpp/yaml.h>
+
+namespace mapmerge::server {
+namespace {
+
+using align::ConfigError;
+
+/// Throws when `node` has a key not in `known`.
+void check_keys(const YAML::Node& node, const std::string& section, const std::set<std::string>& known) {
+  if (!node.IsMap()) throw ConfigError("config section '" + section + "' must be a map");
+  for (const auto& kv : node) {
+    const auto key = kv.first.as<std::string>();
+    if (known.count(key) == 0) throw ConfigError("unknown config key '" + section + "." + key + "'");
+  }
+}
+
+template <class T>
+void read(const YAML::Node& node, const char* key, T& out, const std::string& section) {
+  if (!node[key]) return;
+  try {
+    out = node[key].as<T>();
+  } catch (const YAML::Exception& e) {
+    throw ConfigError("bad value for '" + section + "." + key + "': " + e.what());
+  }
+}
+
+void read_network(const YAML::Node& n, NetworkConfig& c) {
+  check_keys(n, "network", {"domain", "profile", "discovery_server", "ros_octomap_pattern"});
+  read(n, "domain", c.domain, "network");
+  read(n, "profile", c.profile, "network");
+  read(n, "discovery_server", c.discovery_server, "network");
+  read(n, "ros_octomap_pattern", c.ros_octomap_pattern, "network");
+}
+
+void read_merge(const YAML::Node& n, MergeConfig& c) {
+  check_keys(n, "merge", {"threads", "reference", "global_frame", "global_resolution", "refine_known"});
+  read(n, "threads", c.threads, "merge");
+  read(n, "reference", c.reference, "merge");
+  read(n, "global_frame", c.global_frame, "merge");
+  read(n, "global_resolution", c.global_resolution, "merge");
+  read(n, "refine_known", c.refine_known, "merge");
+}
+
+void read_publish(const YAML::Node& n, PublishConfig& c) {
+  check_keys(n, "publish", {"min_interval_s", "republish_period_s", "status_period_s", "global_encoding"});
+  read(n, "min_interval_s", c.min_interval_s, "publish");
+  read(n, "republish_period_s", c.republish_period_s, "publish");
+  read(n, "status_period_s", c.status_period_s, "publish");
+  read(n, "global_encoding", c.global_encoding, "publish");
+}
+
+void read_store(const YAML::Node& n, StoreConfig& c) {
+  check_keys(n, "store", {"state_dir", "synchronous_full"});
+  read(n, "state_dir", c.state_dir, "store");
+  read(n, "synchronous_full", c.synchronous_full, "store");
+}
+
+void read_limits(const YAML::Node& n, DecodeLimits& c) {
+  check_keys(n, "limits", {"max_bytes", "max_nodes", "min_resolution", "max_resolution"});
+  read(n, "max_bytes", c.max_bytes, "limits");
+  read(n, "max_nodes", c.max_nodes, "limits");
+  read(n, "min_resolution", c.min_resolution, "limits");
+  read(n, "max_resolution", c.max_resolution, "limits");
+}
+
+void check(const ServerConfig& c) {
+  if (c.network.domain < 0 || c.network.domain > 101) throw ConfigError("network.domain must be in 0..101");
+  if (c.merge.threads < 1 || c.merge.threads > 256) throw ConfigError("merge.threads must be in 1..256");
+  if (c.merge.global_resolution < 0.0) throw ConfigError("merge.global_resolution must be >= 0");
+  if (c.publish.min_interval_s < 0.0 || c.publish.republish_period_s <= 0.0 || c.publish.status_period_s <= 0.0) {
+    throw ConfigError("publish periods must be positive");
+  }
+  if (!parse_encoding(c.publish.global_encoding)) throw ConfigError("publish.global_encoding is not an encoding");
+  if (c.network.ros_octomap_pattern.find("{robot}") == std::string::npos) {
+    throw ConfigError("network.ros_octomap_pattern must contain {robot}");
+  }
+}
+
+}  // namespace
+
+ServerConfig parse_server_config(const std::string& yaml_text) {
+  ServerConfig c;
+  YAML::Node root;
+  try {
+    root = YAML::Load(yaml_text);
+  } catch (const YAML::Exception& e) {
+    throw ConfigError(std::string("config is not valid YAML: ") + e.what());
+  }
+  if (root.IsNull()) return c;
+  check_keys(root, "(top)", {"network", "merge", "publish", "store", "limits", "align"});
+  if (root["network"]) read_network(root["network"], c.network);
+  if (root["merge"]) read_merge(root["merge"], c.merge);
+  if (root["publish"]) read_publish(root["publish"], c.publish);
+  if (root["store"]) read_store(root["store"], c.store);
+  if (root["limits"]) read_limits(root["limits"], c.limits);
+  if (root["align"]) {
+    YAML::Emitter out;
+    out << root["align"];
+    c.align = align::parse_align_config(out.c_str());
+  }
+  check(c);
+  return c;
+}
+
+ServerConfig load_server_config(const std::string& yaml_path) {
+  std::ifstream in(yaml_path);
+  if (!in) throw ConfigError("cannot read config file '" + yaml_path + "'");
+  std::stringstream text;
+  text << in.rdbuf();
+  return parse_server_config(text.str());
+}
+
+}  // namespace mapmerge::server

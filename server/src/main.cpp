@@ -1,0 +1,108 @@
+// mapmerge-server: merges a robot fleet's OctoMaps into one global map over DDS.
+//
+// Exit codes: 0 clean shutdown (SIGINT/SIGTERM); 1 runtime failure (DDS entities, unexpected
+// error); 2 bad command line or configuration; 3 the state store cannot be opened or read.
+
+#include <csignal>
+#include <cstdlib>
+#include <iostream>
+#include <thread>
+
+#include <CLI/CLI.hpp>
+#include <spdlog/spdlog.h>
+
+#include "mapmerge/server/server.hpp"
+#include "mapmerge/wire/fastdds.hpp"
+
+namespace {
+
+using mapmerge::server::ServerConfig;
+
+enum ExitCode { kOk = 0, kRuntimeError = 1, kUsageError = 2, kStoreError = 3 };
+
+struct Flags {
+  std::string config_file, state_dir, profile, reference, discovery_server, log_level = "info";
+  int domain = -1;
+  int threads = 0;
+};
+
+/// YAML first, then the flags given on the command line on top.
+ServerConfig make_config(const Flags& f) {
+  ServerConfig c = f.config_file.empty() ? ServerConfig{} : mapmerge::server::load_server_config(f.config_file);
+  if (!f.state_dir.empty()) c.store.state_dir = f.state_dir;
+  if (f.domain >= 0) c.network.domain = f.domain;
+  if (!f.profile.empty()) c.network.profile = f.profile;
+  if (!f.reference.empty()) c.merge.reference = f.reference;
+  if (f.threads > 0) c.merge.threads = f.threads;
+  if (!f.discovery_server.empty()) {
+    c.network.discovery_server = f.discovery_server;
+  } else if (const char* env = std::getenv("ROS_DISCOVERY_SERVER"); env && c.network.discovery_server.empty()) {
+    c.network.discovery_server = env;
+  }
+  return c;
+}
+
+/// Blocks SIGINT/SIGTERM in every thread and waits for them on one thread, which stops the server.
+std::thread signal_thread(mapmerge::server::Server& server, sigset_t set) {
+  return std::thread([&server, set] {
+    int sig = 0;
+    sigwait(&set, &sig);
+    if (sig != SIGUSR1) spdlog::info("signal {} received", sig);
+    server.stop();
+  });
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"mapmerge-server: merges a robot fleet's OctoMaps into one global map over DDS.\n"
+               "Exit codes: 0 clean shutdown, 1 runtime error, 2 usage/config error, 3 state store error."};
+  Flags f;
+  app.add_option("--config", f.config_file, "YAML configuration file")->check(CLI::ExistingFile);
+  app.add_option("--state-dir", f.state_dir, "directory of the persistent state (SQLite)");
+  app.add_option("--domain", f.domain, "DDS domain id")->check(CLI::Range(0, 101));
+  app.add_option("--profile", f.profile, "DDS profile: local, default or a Fast DDS XML file");
+  app.add_option("--reference", f.reference, "robot whose map frame is the global frame (default: first heard)");
+  app.add_option("--discovery-server", f.discovery_server,
+                 "HOST:PORT of a Fast DDS discovery server (default: $ROS_DISCOVERY_SERVER)");
+  app.add_option("--threads", f.threads, "merge worker threads")->check(CLI::Range(1, 256));
+  app.add_option("--log-level", f.log_level, "trace, debug, info, warn, error");
+  CLI11_PARSE(app, argc, argv);
+
+  spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e %^%l%$ %v");
+  spdlog::set_level(spdlog::level::from_str(f.log_level));
+  ServerConfig config;
+  try {
+    config = make_config(f);
+  } catch (const std::exception& e) {
+    std::cerr << "mapmerge-server: " << e.what() << "\n";
+    return kUsageError;
+  }
+  sigset_t set;
+  sigemptyset(&set);
+  sigaddset(&set, SIGINT);
+  sigaddset(&set, SIGTERM);
+  sigaddset(&set, SIGUSR1);
+  pthread_sigmask(SIG_BLOCK, &set, nullptr);  // before any thread starts: all inherit it
+  try {
+    mapmerge::server::Server server(config);
+    std::thread signals = signal_thread(server, set);
+    server.run();
+    pthread_kill(signals.native_handle(), SIGUSR1);  // wakes the signal thread if run() ended otherwise
+    signals.join();
+  } catch (const mapmerge::server::StoreError& e) {
+    spdlog::error("state store: {}", e.what());
+    return kStoreError;
+  } catch (const mapmerge::wire::DdsError& e) {
+    spdlog::error("DDS: {}", e.what());
+    return kRuntimeError;
+  } catch (const std::invalid_argument& e) {
+    spdlog::error("configuration: {}", e.what());
+    return kUsageError;
+  } catch (const std::exception& e) {
+    spdlog::error("{}", e.what());
+    return kRuntimeError;
+  }
+  spdlog::info("stopped");
+  return kOk;
+}

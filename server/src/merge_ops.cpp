@@ -1,0 +1,66 @@
+#include "mapmerge/server/merge_ops.hpp"
+
+#include <exception>
+
+#include "mapmerge/map/fusion.hpp"
+#include "mapmerge/wire/topics.hpp"
+
+namespace mapmerge::server {
+
+DecodedMap decode_sample(const MapSample& s, const DecodeLimits& limits) {
+  DecodedMap out;
+  if (!wire::is_valid_robot_id(s.robot_id)) {
+    out.reason = "invalid robot id '" + s.robot_id + "'";
+    return out;
+  }
+  if (s.robot_id != s.topic_robot) {
+    out.reason = "robot id '" + s.robot_id + "' does not match its topic " + s.topic;
+    return out;
+  }
+  DecodeResult r = s.ros ? decode_tree_body(s.ros_id, s.resolution, s.ros_binary, s.data, limits)
+                         : decode_map(s.data, s.encoding, limits);
+  if (!r.ok()) {
+    out.reason = std::string(to_string(r.error)) + ": " + r.reason;
+    return out;
+  }
+  if (r.empty || r.tree->size() == 0) {
+    out.reason = "empty map";
+    return out;
+  }
+  if (!s.ros && s.resolution > 0.0 && std::abs(r.tree->getResolution() - s.resolution) > 1e-9) {
+    out.reason = "resolution field " + std::to_string(s.resolution) + " differs from the map's " +
+                 std::to_string(r.tree->getResolution());
+    return out;
+  }
+  out.tree = std::shared_ptr<const octomap::OcTree>(std::move(r.tree));
+  return out;
+}
+
+std::shared_ptr<const align::PreparedMap> prepare(const octomap::OcTree& tree,
+                                                  const align::AlignConfig& config, std::string& error) {
+  try {
+    return std::make_shared<const align::PreparedMap>(align::prepare_map(tree, config));
+  } catch (const std::exception& e) {
+    error = e.what();
+    return nullptr;
+  }
+}
+
+align::AlignResult align_global(const align::PreparedMap& target, const align::PreparedMap& source,
+                                const align::AlignConfig& config) {
+  return align::align(target, source, config);
+}
+
+align::AlignResult align_local(const align::PreparedMap& target, const align::PreparedMap& source,
+                               const Eigen::Matrix4d& T_target_source, const align::AlignConfig& config) {
+  return align::refine(target, source, T_target_source, config);
+}
+
+std::unique_ptr<octomap::OcTree> fuse_global(const std::vector<PlacedMap>& maps, double resolution) {
+  std::vector<MapInGlobal> in;
+  in.reserve(maps.size());
+  for (const PlacedMap& m : maps) in.emplace_back(m.tree.get(), m.T_global_robot);
+  return fuse_maps(in, resolution);
+}
+
+}  // namespace mapmerge::server

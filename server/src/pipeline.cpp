@@ -1,0 +1,176 @@
+#include "mapmerge/server/pipeline.hpp"
+
+#include <algorithm>
+#include <chrono>
+
+#include <spdlog/spdlog.h>
+
+#include "mapmerge/server/merge_ops.hpp"
+
+namespace mapmerge::server {
+namespace {
+
+constexpr std::size_t kRecentMerges = 16;  ///< merge reports kept for the status topic
+
+double seconds_since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+/// How a global search remembers a failed partner: its id at its map revision.
+std::string tried_key(const RobotRecord& other) { return other.robot_id + "#" + std::to_string(other.map_revision); }
+
+}  // namespace
+
+Pipeline::Pipeline(const ServerConfig& config, Registry& registry, Store* store, Hooks hooks)
+    : config_(config), registry_(registry), store_(store), hooks_(std::move(hooks)) {}
+
+void Pipeline::process(const std::string& robot, std::optional<MapSample> map, bool retry) {
+  if (map) {
+    if (!ingest(*map, true)) return;
+  } else if (!retry || registry_.status(robot) == RobotStatus::kAligned) {
+    return;
+  }
+  place(robot);
+}
+
+bool Pipeline::restore(const MapSample& map) { return ingest(map, false); }
+
+bool Pipeline::ingest(const MapSample& m, bool persist) {
+  const std::string& robot = m.topic_robot;
+  DecodedMap decoded = decode_sample(m, config_.limits);
+  if (!decoded.tree) {
+    ++rejected_;
+    registry_.reject(robot, decoded.reason);
+    spdlog::warn("robot {}: update {}/{} rejected: {}", robot, m.session_id, m.sequence, decoded.reason);
+    if (hooks_.changed) hooks_.changed();
+    return false;
+  }
+  RobotRecord r;
+  r.robot_id = robot;
+  r.session_id = m.session_id;
+  r.sequence = m.sequence;
+  r.frame_id = m.frame_id.empty() ? robot + "/map" : m.frame_id;
+  r.resolution = decoded.tree->getResolution();
+  r.received_unix = m.received_unix;
+  r.tree = decoded.tree;
+  const std::size_t leaves = decoded.tree->getNumLeafNodes();
+  registry_.put_map(std::move(r));
+  if (persist && store_ != nullptr) {
+    try {
+      store_->save_map(m);
+    } catch (const StoreError& e) {
+      spdlog::error("robot {}: map kept in memory only, store failed: {}", robot, e.what());
+    }
+  }
+  ++accepted_;
+  spdlog::info("robot {}: map {}/{} accepted ({} leaves, {:.3f} m)", robot, m.session_id, m.sequence, leaves,
+               decoded.tree->getResolution());
+  return true;
+}
+
+void Pipeline::place(const std::string& robot) {
+  const auto rec = registry_.get(robot);
+  if (!rec || !rec->tree) return;
+  const std::string wanted = config_.merge.reference.empty() ? robot : config_.merge.reference;
+  const std::string reference = registry_.claim_reference(wanted);
+  if (robot == reference) {
+    spdlog::info("robot {} defines the global frame", robot);
+    on_new_alignment(robot);
+    return;
+  }
+  if (registry_.poses().count(robot) != 0) {
+    if (config_.merge.refine_known) refine_known(*rec);
+    on_new_alignment(robot);
+    return;
+  }
+  search_unknown(*rec);
+}
+
+std::shared_ptr<const align::PreparedMap> Pipeline::prepared(const std::string& robot) {
+  const auto rec = registry_.get(robot);
+  if (!rec || !rec->tree) return nullptr;
+  if (rec->prepared) return rec->prepared;
+  std::string error;
+  auto p = prepare(*rec->tree, config_.align, error);
+  if (!p) {
+    spdlog::warn("robot {}: map cannot be aligned: {}", robot, error);
+    return nullptr;
+  }
+  registry_.set_prepared(robot, rec->map_revision, p);
+  return p;
+}
+
+void Pipeline::search_unknown(const RobotRecord& rec) {
+  const auto me = prepared(rec.robot_id);
+  if (!me) return;
+  std::vector<std::shared_ptr<const RobotRecord>> candidates;
+  for (const auto& [id, pose] : registry_.poses()) {
+    auto other = registry_.get(id);
+    if (id != rec.robot_id && other && rec.tried.count(tried_key(*other)) == 0) candidates.push_back(other);
+  }
+  std::sort(candidates.begin(), candidates.end(),
+            [](const auto& a, const auto& b) { return a->tree->size() > b->tree->size(); });
+  for (const auto& other : candidates) {
+    const auto target = prepared(other->robot_id);
+    if (!target) continue;
+    spdlog::info("merge {} <- {}: global search started", other->robot_id, rec.robot_id);
+    const auto t0 = std::chrono::steady_clock::now();
+    const align::AlignResult res = align_global(*target, *me, config_.align);
+    report({other->robot_id, rec.robot_id, res.accepted, true, res.fitness, seconds_since(t0), res.reason, unix_now()});
+    registry_.mark_tried(rec.robot_id, rec.map_revision, tried_key(*other));
+    if (res.accepted) {
+      registry_.put_edge(Edge{other->robot_id, rec.robot_id, res.T_target_source, res.fitness});
+      on_new_alignment(rec.robot_id);
+      return;
+    }
+  }
+}
+
+void Pipeline::refine_known(const RobotRecord& rec) {
+  const auto me = prepared(rec.robot_id);
+  if (!me) return;
+  for (const Edge& e : registry_.edges_of(rec.robot_id)) {
+    const bool is_source = e.source == rec.robot_id;
+    const auto other = prepared(is_source ? e.target : e.source);
+    if (!other) continue;
+    const auto t0 = std::chrono::steady_clock::now();
+    const align::AlignResult res = is_source ? align_local(*other, *me, e.T_target_source, config_.align)
+                                             : align_local(*me, *other, e.T_target_source, config_.align);
+    report({e.target, e.source, res.accepted, false, res.fitness, seconds_since(t0), res.reason, unix_now()});
+    if (res.accepted) registry_.put_edge(Edge{e.target, e.source, res.T_target_source, res.fitness});
+  }
+}
+
+void Pipeline::on_new_alignment(const std::string& robot) {
+  if (store_ != nullptr) {
+    try {
+      store_->save_alignment(registry_.reference(), registry_.edges());
+    } catch (const StoreError& e) {
+      spdlog::error("alignment kept in memory only, store failed: {}", e.what());
+    }
+  }
+  if (hooks_.changed) hooks_.changed();
+  const auto poses = registry_.poses();
+  for (const auto& r : registry_.all()) {
+    if (r->robot_id != robot && r->tree && poses.count(r->robot_id) == 0 && hooks_.retry) hooks_.retry(r->robot_id);
+  }
+}
+
+void Pipeline::report(MergeReportOut r) {
+  ++merges_;
+  spdlog::info("merge {} <- {} ({}): {} fitness {:.4f} m in {:.2f} s{}{}", r.target, r.source,
+               r.global_search ? "global" : "refine", r.accepted ? "accepted" : "rejected", r.fitness,
+               r.duration_s, r.detail.empty() ? "" : ": ", r.detail);
+  std::lock_guard<std::mutex> lock(reports_mutex_);
+  reports_.push_back(std::move(r));
+  while (reports_.size() > kRecentMerges) reports_.pop_front();
+}
+
+PipelineCounters Pipeline::counters() const { return {accepted_.load(), rejected_.load(), merges_.load()}; }
+
+std::vector<MergeReportOut> Pipeline::recent_merges() const {
+  std::lock_guard<std::mutex> lock(reports_mutex_);
+  return {reports_.begin(), reports_.end()};
+}
+
+}  // namespace mapmerge::server

@@ -1,0 +1,163 @@
+#include "mapmerge/server/registry.hpp"
+
+namespace mapmerge::server {
+
+const char* to_string(RobotStatus status) {
+  switch (status) {
+    case RobotStatus::kAligned: return "aligned";
+    case RobotStatus::kRejected: return "rejected";
+    case RobotStatus::kUnknown: break;
+  }
+  return "unknown";
+}
+
+const char* to_string(Admission a) {
+  switch (a) {
+    case Admission::kNew: return "new";
+    case Admission::kNewSession: return "new_session";
+    case Admission::kDuplicate: return "duplicate";
+    case Admission::kOutOfOrder: return "out_of_order";
+  }
+  return "?";
+}
+
+Admission Registry::admit(const std::string& robot, const std::string& session, std::uint64_t sequence) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  auto it = seen_.find(robot);
+  if (it == seen_.end()) {
+    seen_[robot] = Seen{session, sequence};
+    return Admission::kNew;
+  }
+  Seen& s = it->second;
+  if (s.session != session) {
+    s = Seen{session, sequence};
+    return Admission::kNewSession;
+  }
+  if (sequence == s.sequence) return Admission::kDuplicate;
+  if (sequence < s.sequence) return Admission::kOutOfOrder;
+  s.sequence = sequence;
+  return Admission::kNew;
+}
+
+RobotRecord& Registry::mutable_record(const std::string& robot) {
+  auto& slot = records_[robot];
+  slot = slot ? std::make_shared<RobotRecord>(*slot) : std::make_shared<RobotRecord>();
+  slot->robot_id = robot;
+  return *slot;
+}
+
+void Registry::put_map(RobotRecord record) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  RobotRecord& r = mutable_record(record.robot_id);
+  if (!r.session_id.empty() && r.session_id != record.session_id) {
+    // A new session may come with a new map frame: its alignments no longer hold.
+    for (auto it = edges_.begin(); it != edges_.end();) {
+      const bool involved = it->first.first == r.robot_id || it->first.second == r.robot_id;
+      it = involved ? edges_.erase(it) : std::next(it);
+    }
+  }
+  record.map_revision = r.map_revision + 1;
+  record.updates_accepted = r.updates_accepted + 1;
+  record.updates_rejected = r.updates_rejected;
+  record.last_error = r.last_error;
+  record.tried.clear();
+  auto& s = seen_[record.robot_id];
+  if (s.session.empty()) s = Seen{record.session_id, record.sequence};
+  r = std::move(record);
+}
+
+void Registry::reject(const std::string& robot, const std::string& reason) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  RobotRecord& r = mutable_record(robot);
+  ++r.updates_rejected;
+  r.last_error = reason;
+}
+
+void Registry::set_prepared(const std::string& robot, std::uint64_t revision,
+                            std::shared_ptr<const align::PreparedMap> prepared) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  auto it = records_.find(robot);
+  if (it == records_.end() || it->second->map_revision != revision) return;
+  mutable_record(robot).prepared = std::move(prepared);
+}
+
+void Registry::mark_tried(const std::string& robot, std::uint64_t revision, const std::string& other) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  auto it = records_.find(robot);
+  if (it == records_.end() || it->second->map_revision != revision) return;
+  mutable_record(robot).tried.insert(other);
+}
+
+void Registry::put_edge(const Edge& edge) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  edges_.erase({edge.source, edge.target});
+  edges_[{edge.target, edge.source}] = edge;
+}
+
+std::vector<Edge> Registry::edges() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  std::vector<Edge> out;
+  for (const auto& kv : edges_) out.push_back(kv.second);
+  return out;
+}
+
+std::vector<Edge> Registry::edges_of(const std::string& robot) const {
+  std::vector<Edge> out;
+  for (const Edge& e : edges()) {
+    if (e.target == robot || e.source == robot) out.push_back(e);
+  }
+  return out;
+}
+
+std::string Registry::reference() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return reference_;
+}
+
+std::string Registry::claim_reference(const std::string& robot) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (reference_.empty()) reference_ = robot;
+  return reference_;
+}
+
+std::shared_ptr<const RobotRecord> Registry::get(const std::string& robot) const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  auto it = records_.find(robot);
+  return it == records_.end() ? nullptr : it->second;
+}
+
+std::vector<std::shared_ptr<const RobotRecord>> Registry::all() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  std::vector<std::shared_ptr<const RobotRecord>> out;
+  for (const auto& kv : records_) out.push_back(kv.second);
+  return out;
+}
+
+std::map<std::string, GlobalPose> Registry::poses_locked() const {
+  std::vector<Edge> usable;
+  for (const auto& kv : edges_) usable.push_back(kv.second);
+  auto poses = global_poses(reference_, usable);
+  for (auto it = poses.begin(); it != poses.end();) {
+    auto rec = records_.find(it->first);
+    const bool has_map = rec != records_.end() && rec->second->tree != nullptr;
+    it = has_map ? std::next(it) : poses.erase(it);
+  }
+  return poses;
+}
+
+std::map<std::string, GlobalPose> Registry::poses() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return poses_locked();
+}
+
+RobotStatus Registry::status(const std::string& robot) const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (poses_locked().count(robot) != 0) return RobotStatus::kAligned;
+  auto it = records_.find(robot);
+  if (it != records_.end() && it->second->tree == nullptr && it->second->updates_rejected > 0) {
+    return RobotStatus::kRejected;
+  }
+  return RobotStatus::kUnknown;
+}
+
+}  // namespace mapmerge::server

@@ -1,0 +1,164 @@
+#include "mapmerge/server/server.hpp"
+
+#include <spdlog/spdlog.h>
+
+#include "mapmerge/server/global_map.hpp"
+
+namespace mapmerge::server {
+namespace {
+
+constexpr auto kLoopPeriod = std::chrono::milliseconds(50);  ///< main loop wake-up when idle
+
+std::chrono::duration<double> seconds(double s) { return std::chrono::duration<double>(s); }
+
+}  // namespace
+
+Server::Server(ServerConfig config) : config_(std::move(config)) {
+  if (!config_.store.state_dir.empty()) store_ = std::make_unique<Store>(config_.store);
+  if (!config_.merge.reference.empty()) registry_.claim_reference(config_.merge.reference);
+  Pipeline::Hooks hooks;
+  hooks.retry = [this](const std::string& robot) { scheduler_->retry(robot); };
+  hooks.changed = [this] {
+    dirty_ = true;
+    cv_.notify_all();
+  };
+  pipeline_ = std::make_unique<Pipeline>(config_, registry_, store_.get(), hooks);
+  restore();
+  scheduler_ = std::make_unique<Scheduler>(config_.merge.threads,
+      [this](const std::string& robot, std::optional<MapSample> map, bool retry) {
+        pipeline_->process(robot, std::move(map), retry);
+      });
+  DdsIo::Callbacks callbacks;
+  callbacks.on_map = [this](MapSample s) { on_map(std::move(s)); };
+  callbacks.on_request = [this](const std::string& who) {
+    spdlog::debug("map request from {}", who);
+    requested_ = true;
+    cv_.notify_all();
+  };
+  callbacks.on_discovery = [this] { cv_.notify_all(); };
+  dds_ = std::make_unique<DdsIo>(config_.network, callbacks);
+  spdlog::info("serving on domain {} with profile {}{}", config_.network.domain, config_.network.profile,
+               config_.network.discovery_server.empty() ? "" : " via discovery server " + config_.network.discovery_server);
+  if (last_global_) republish();
+  for (const auto& rec : registry_.all()) {
+    if (registry_.status(rec->robot_id) != RobotStatus::kAligned) scheduler_->retry(rec->robot_id);
+  }
+}
+
+Server::~Server() {
+  stop();
+  dds_.reset();        // no more callbacks
+  scheduler_.reset();  // joins the workers
+}
+
+void Server::restore() {
+  if (!store_) return;
+  StoreSnapshot snap = store_->load();
+  if (!snap.reference.empty()) registry_.claim_reference(snap.reference);
+  for (const MapSample& m : snap.maps) {
+    registry_.admit(m.robot_id, m.session_id, m.sequence);
+    pipeline_->restore(m);
+  }
+  for (const Edge& e : snap.edges) registry_.put_edge(e);
+  if (snap.global) {
+    version_ = snap.global->version;
+    last_global_ = std::move(snap.global);
+  }
+  spdlog::info("restored {} robots, {} alignments, global map version {} from {}", snap.maps.size(),
+               snap.edges.size(), version_, store_->path());
+}
+
+void Server::on_map(MapSample sample) {
+  ++received_;
+  const Admission a = registry_.admit(sample.topic_robot, sample.session_id, sample.sequence);
+  if (a == Admission::kDuplicate || a == Admission::kOutOfOrder) {
+    ++ignored_;
+    spdlog::debug("robot {}: update {}/{} ignored ({})", sample.topic_robot, sample.session_id, sample.sequence,
+                  to_string(a));
+    return;
+  }
+  if (a == Admission::kNewSession) spdlog::info("robot {}: new session {}", sample.topic_robot, sample.session_id);
+  scheduler_->submit(std::move(sample));
+}
+
+void Server::run() {
+  while (!stopping_) {
+    {
+      std::unique_lock<std::mutex> lock(mutex_);
+      cv_.wait_for(lock, kLoopPeriod);
+    }
+    if (stopping_) break;
+    loop_once();
+  }
+  spdlog::info("shutting down");
+  scheduler_->stop();
+}
+
+void Server::stop() {
+  stopping_ = true;
+  cv_.notify_all();
+}
+
+void Server::loop_once() {
+  for (const std::string& topic : dds_->service()) spdlog::info("robot topic {} discovered: subscribed", topic);
+  const auto now = Clock::now();
+  if (dirty_ && now - last_build_ >= seconds(config_.publish.min_interval_s)) {
+    dirty_ = false;
+    last_build_ = now;
+    publish_global();
+  } else if (requested_.exchange(false) || now - last_republish_ >= seconds(config_.publish.republish_period_s)) {
+    republish();
+  }
+  if (now - last_status_ >= seconds(config_.publish.status_period_s)) publish_status();
+}
+
+void Server::publish_global() {
+  const auto t0 = Clock::now();
+  auto global = build_global_map(registry_, config_, version_ + 1);
+  if (!global) return;
+  version_ = global->version;
+  const auto poses = current_poses();
+  if (store_) {
+    try {
+      store_->save_global(*global, poses);
+    } catch (const StoreError& e) {
+      spdlog::error("global map {} kept in memory only, store failed: {}", version_, e.what());
+    }
+  }
+  last_global_ = std::move(global);
+  republish();
+  spdlog::info("global map {} published: {} robots, {} bytes, built in {:.3f} s", version_,
+               last_global_->contributors.size(), last_global_->data.size(),
+               std::chrono::duration<double>(Clock::now() - t0).count());
+}
+
+void Server::republish() {
+  last_republish_ = Clock::now();
+  if (last_global_) dds_->publish_global(*last_global_);
+  dds_->publish_poses(current_poses(), version_, config_.merge.global_frame);
+}
+
+std::vector<PoseOut> Server::current_poses() const { return pose_outputs(registry_); }
+
+void Server::publish_status() {
+  last_status_ = Clock::now();
+  StatusOut s;
+  s.global_version = version_;
+  for (const auto& rec : registry_.all()) {
+    const RobotStatus st = registry_.status(rec->robot_id);
+    const PoseState ps = st == RobotStatus::kAligned ? PoseState::kAligned
+                         : st == RobotStatus::kRejected ? PoseState::kRejected : PoseState::kUnknown;
+    s.robots.push_back({rec->robot_id, ps, rec->session_id, rec->sequence, rec->resolution,
+                        rec->updates_accepted, rec->updates_rejected, rec->last_error});
+  }
+  s.recent_merges = pipeline_->recent_merges();
+  const auto c = pipeline_->counters();
+  const auto sched = scheduler_->stats();
+  s.updates_received = received_;
+  s.updates_rejected = c.updates_rejected;
+  s.merges_run = c.merges_run;
+  s.merges_coalesced = sched.coalesced;
+  dds_->publish_status(s);
+}
+
+}  // namespace mapmerge::server

@@ -1,0 +1,172 @@
+#include "mapmerge/server/store.hpp"
+
+#include <cstring>
+#include <filesystem>
+
+#include <nlohmann/json.hpp>
+
+#include "sqlite_stmt.hpp"
+
+namespace mapmerge::server {
+namespace {
+
+using detail::Stmt;
+
+constexpr const char* kSchema = R"SQL(
+CREATE TABLE IF NOT EXISTS meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS robots(robot_id TEXT PRIMARY KEY, session_id TEXT, sequence INTEGER,
+  frame_id TEXT, resolution REAL, received REAL, encoding TEXT, ros INTEGER, ros_binary INTEGER,
+  ros_id TEXT, data BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS edges(target TEXT, source TEXT, T BLOB NOT NULL, fitness REAL,
+  PRIMARY KEY(target, source));
+CREATE TABLE IF NOT EXISTS global_map(id INTEGER PRIMARY KEY CHECK(id = 1), version INTEGER,
+  stamp REAL, frame_id TEXT, resolution REAL, encoding TEXT, data BLOB, ros_body BLOB,
+  contributors TEXT);
+CREATE TABLE IF NOT EXISTS poses(robot_id TEXT PRIMARY KEY, frame TEXT, T BLOB NOT NULL,
+  fitness REAL, quality REAL, state INTEGER);
+)SQL";
+
+std::vector<double> to_vec(const Eigen::Matrix4d& T) { return {T.data(), T.data() + 16}; }
+
+Eigen::Matrix4d from_blob(const std::vector<std::uint8_t>& b) {
+  Eigen::Matrix4d T = Eigen::Matrix4d::Identity();
+  if (b.size() == 16 * sizeof(double)) std::memcpy(T.data(), b.data(), b.size());
+  return T;
+}
+
+std::string contributors_json(const std::vector<Contribution>& cs) {
+  nlohmann::json j = nlohmann::json::array();
+  for (const auto& c : cs) j.push_back({{"robot", c.robot_id}, {"session", c.session_id}, {"seq", c.sequence}});
+  return j.dump();
+}
+
+std::vector<Contribution> contributors_from(const std::string& text) {
+  std::vector<Contribution> out;
+  const auto j = nlohmann::json::parse(text, nullptr, false);
+  if (!j.is_array()) return out;
+  for (const auto& c : j) out.push_back({c.value("robot", ""), c.value("session", ""), c.value("seq", 0ULL)});
+  return out;
+}
+
+}  // namespace
+
+Store::Store(const StoreConfig& config) {
+  std::error_code ec;
+  std::filesystem::create_directories(config.state_dir, ec);
+  path_ = (std::filesystem::path(config.state_dir) / "state.sqlite").string();
+  if (sqlite3_open(path_.c_str(), &db_) != SQLITE_OK) {
+    const std::string msg = db_ ? sqlite3_errmsg(db_) : "out of memory";
+    sqlite3_close(db_);
+    db_ = nullptr;
+    throw StoreError("cannot open state store '" + path_ + "': " + msg);
+  }
+  sqlite3_busy_timeout(db_, 5000);
+  exec("PRAGMA journal_mode=WAL;");
+  exec(config.synchronous_full ? "PRAGMA synchronous=FULL;" : "PRAGMA synchronous=NORMAL;");
+  exec(kSchema);
+}
+
+Store::~Store() { sqlite3_close(db_); }
+
+void Store::exec(const char* sql) {
+  char* err = nullptr;
+  if (sqlite3_exec(db_, sql, nullptr, nullptr, &err) != SQLITE_OK) {
+    const std::string msg = err ? err : "?";
+    sqlite3_free(err);
+    throw StoreError("sqlite (" + path_ + "): " + msg);
+  }
+}
+
+void Store::transaction(const std::function<void()>& body) {
+  std::lock_guard<std::recursive_mutex> lock(mutex_);
+  exec("BEGIN IMMEDIATE;");
+  try {
+    body();
+    exec("COMMIT;");
+  } catch (...) {
+    sqlite3_exec(db_, "ROLLBACK;", nullptr, nullptr, nullptr);
+    throw;
+  }
+}
+
+void Store::save_map(const MapSample& m) {
+  transaction([&] {
+    Stmt s(db_, "INSERT OR REPLACE INTO robots VALUES(?,?,?,?,?,?,?,?,?,?,?)");
+    s.bind(1, m.robot_id).bind(2, m.session_id).bind(3, static_cast<std::int64_t>(m.sequence));
+    s.bind(4, m.frame_id).bind(5, m.resolution).bind(6, m.received_unix).bind(7, m.encoding);
+    s.bind(8, std::int64_t{m.ros}).bind(9, std::int64_t{m.ros_binary}).bind(10, m.ros_id);
+    s.bind(11, m.data.data(), m.data.size());
+    s.run();
+  });
+}
+
+void Store::save_alignment(const std::string& reference, const std::vector<Edge>& edges) {
+  transaction([&] {
+    Stmt(db_, "INSERT OR REPLACE INTO meta VALUES('reference', ?)").bind(1, reference).run();
+    exec("DELETE FROM edges;");
+    for (const Edge& e : edges) {
+      const auto T = to_vec(e.T_target_source);
+      Stmt s(db_, "INSERT INTO edges VALUES(?,?,?,?)");
+      s.bind(1, e.target).bind(2, e.source).bind(3, T.data(), T.size() * sizeof(double)).bind(4, e.fitness).run();
+    }
+  });
+}
+
+void Store::save_global(const GlobalMapOut& g, const std::vector<PoseOut>& poses) {
+  transaction([&] {
+    Stmt s(db_, "INSERT OR REPLACE INTO global_map VALUES(1,?,?,?,?,?,?,?,?)");
+    s.bind(1, static_cast<std::int64_t>(g.version)).bind(2, g.stamp_unix).bind(3, g.frame_id);
+    s.bind(4, g.resolution).bind(5, g.encoding).bind(6, g.data.data(), g.data.size());
+    s.bind(7, g.ros_body.data(), g.ros_body.size()).bind(8, contributors_json(g.contributors)).run();
+    exec("DELETE FROM poses;");
+    for (const PoseOut& p : poses) {
+      const auto T = to_vec(p.T_global_robot);
+      Stmt ps(db_, "INSERT INTO poses VALUES(?,?,?,?,?,?)");
+      ps.bind(1, p.robot_id).bind(2, p.robot_frame).bind(3, T.data(), T.size() * sizeof(double));
+      ps.bind(4, p.fitness).bind(5, p.quality).bind(6, static_cast<std::int64_t>(p.state)).run();
+    }
+  });
+}
+
+StoreSnapshot Store::load() {
+  std::lock_guard<std::recursive_mutex> lock(mutex_);
+  StoreSnapshot snap;
+  for (Stmt s(db_, "SELECT value FROM meta WHERE key='reference'"); s.step();) snap.reference = s.text(0);
+  for (Stmt s(db_, "SELECT * FROM robots ORDER BY robot_id"); s.step();) {
+    MapSample m;
+    m.robot_id = m.topic_robot = s.text(0);
+    m.session_id = s.text(1);
+    m.sequence = static_cast<std::uint64_t>(s.integer(2));
+    m.frame_id = s.text(3);
+    m.resolution = s.real(4);
+    m.received_unix = s.real(5);
+    m.encoding = s.text(6);
+    m.ros = s.integer(7) != 0;
+    m.ros_binary = s.integer(8) != 0;
+    m.ros_id = s.text(9);
+    m.data = s.blob(10);
+    snap.maps.push_back(std::move(m));
+  }
+  for (Stmt s(db_, "SELECT target, source, T, fitness FROM edges"); s.step();) {
+    snap.edges.push_back(Edge{s.text(0), s.text(1), from_blob(s.blob(2)), s.real(3)});
+  }
+  for (Stmt s(db_, "SELECT * FROM global_map WHERE id=1"); s.step();) {
+    GlobalMapOut g;
+    g.version = static_cast<std::uint64_t>(s.integer(1));
+    g.stamp_unix = s.real(2);
+    g.frame_id = s.text(3);
+    g.resolution = s.real(4);
+    g.encoding = s.text(5);
+    g.data = s.blob(6);
+    g.ros_body = s.blob(7);
+    g.contributors = contributors_from(s.text(8));
+    snap.global = std::move(g);
+  }
+  for (Stmt s(db_, "SELECT robot_id, frame, T, fitness, quality, state FROM poses"); s.step();) {
+    snap.poses.push_back(PoseOut{s.text(0), s.text(1), from_blob(s.blob(2)), s.real(3), s.real(4),
+                                 static_cast<PoseState>(s.integer(5))});
+  }
+  return snap;
+}
+
+}  // namespace mapmerge::server
