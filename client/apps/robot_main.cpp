@@ -46,7 +46,8 @@ int run(const RobotConfig& config) {
   const auto vendor = *client::parse_vendor(config.dds.vendor);
   std::unique_ptr<Client> robot = make_client(options, vendor);
 
-  cli::out(config.id + ": " + client::to_string(vendor) + " on domain " + std::to_string(config.dds.domain) +
+  // With --json, stdout carries only pose lines.
+  (config.json ? cli::err : cli::out)(config.id + ": " + client::to_string(vendor) + " on domain " + std::to_string(config.dds.domain) +
            ", profile " + config.dds.profile + ", session " + robot->session_id() + ", map " + config.map_file +
            " (" + std::to_string(tree->size()) + " nodes, " + std::to_string(tree->getResolution()) + " m)");
   std::atomic<bool> aligned{false};
