@@ -96,13 +96,13 @@ void use_security(dds::DomainParticipantQos& qos, const SecurityOptions& securit
     props.emplace_back(name, value);
   };
   set("dds.sec.auth.plugin", "builtin.PKI-DH");
-  set("dds.sec.auth.builtin.PKI-DH.identity_ca", "file:" + files.identity_ca);
-  set("dds.sec.auth.builtin.PKI-DH.identity_certificate", "file:" + files.certificate);
-  set("dds.sec.auth.builtin.PKI-DH.private_key", "file:" + files.private_key);
+  set("dds.sec.auth.builtin.PKI-DH.identity_ca", "file://" + files.identity_ca);
+  set("dds.sec.auth.builtin.PKI-DH.identity_certificate", "file://" + files.certificate);
+  set("dds.sec.auth.builtin.PKI-DH.private_key", "file://" + files.private_key);
   set("dds.sec.access.plugin", "builtin.Access-Permissions");
-  set("dds.sec.access.builtin.Access-Permissions.permissions_ca", "file:" + files.permissions_ca);
-  set("dds.sec.access.builtin.Access-Permissions.governance", "file:" + files.governance);
-  set("dds.sec.access.builtin.Access-Permissions.permissions", "file:" + files.permissions);
+  set("dds.sec.access.builtin.Access-Permissions.permissions_ca", "file://" + files.permissions_ca);
+  set("dds.sec.access.builtin.Access-Permissions.governance", "file://" + files.governance);
+  set("dds.sec.access.builtin.Access-Permissions.permissions", "file://" + files.permissions);
   set("dds.sec.crypto.plugin", "builtin.AES-GCM-GMAC");
 }
 

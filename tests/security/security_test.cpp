@@ -1,0 +1,346 @@
+// DDS Security with real participants on loopback (the `local` profile): authenticated robots
+// reach the server byte for byte; strangers, forged permissions and robots writing on another
+// robot's topic are refused; a secured Cyclone DDS robot interoperates with the secured
+// Fast DDS server. Negative checks always run next to a positive control on the same topic,
+// so "nothing arrived" cannot pass just because discovery had not finished.
+
+#include <chrono>
+#include <fstream>
+#include <iterator>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "dds_test_env.hpp"
+#include "mapmerge/wire/cyclone.hpp"
+#include "mapmerge/wire/fastdds.hpp"
+#include "mapmerge/wire/topics.hpp"
+#include "mapmerge_cyclone/mapmerge.h"
+#include "mapmerge_fastdds/mapmergePubSubTypes.h"
+#include "secure_test_env.hpp"
+
+namespace mapmerge::test {
+namespace {
+
+namespace fdds = eprosima::fastdds::dds;
+using namespace std::chrono_literals;
+using wire::CycloneParticipant;
+using wire::FastddsParticipant;
+using wire::ParticipantOptions;
+using wire::SecurityOptions;
+using wire::TopicKind;
+
+constexpr auto kDeliveryTimeout = 30000ms;  ///< bound on a wanted delivery (discovery + handshake)
+constexpr auto kQuietPeriod = 3000ms;       ///< after the control delivered: how long intruders get
+
+std::vector<uint8_t> sample_map() {
+  std::ifstream in(std::string(MAPMERGE_DATA_DIR) + "/fr_079.bt", std::ios::binary);
+  EXPECT_TRUE(in);
+  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
+
+mapmerge::MapUpdate map_update(const std::string& robot, const std::string& session, std::vector<uint8_t> bytes) {
+  mapmerge::MapUpdate u;
+  u.robot_id(robot);
+  u.session_id(session);
+  u.sequence_number(1);
+  u.frame_id(robot + "/map");
+  u.resolution(0.05);
+  u.encoding("octomap-bt");
+  u.data(std::move(bytes));
+  return u;
+}
+
+mapmerge::GlobalMap global_map(const std::string& frame, uint64_t version) {
+  mapmerge::GlobalMap g;
+  g.version(version);
+  g.frame_id(frame);
+  g.resolution(0.05);
+  g.encoding("octomap-bt");
+  g.data({1, 2, 3, 4});
+  return g;
+}
+
+/// Every sample a Fast DDS reader has now.
+template <class Sample>
+std::vector<Sample> fast_take_all(fdds::DataReader* reader) {
+  std::vector<Sample> out;
+  Sample s;
+  fdds::SampleInfo info;
+  while (reader->take_next_sample(&s, &info) == ReturnCode_t::RETCODE_OK) {
+    if (info.valid_data) out.push_back(s);
+  }
+  return out;
+}
+
+/// Waits up to kDeliveryTimeout for the first valid sample.
+template <class Sample>
+bool fast_take_one(fdds::DataReader* reader, Sample& out) {
+  return eventually(
+      [&] {
+        fdds::SampleInfo info;
+        return reader->take_next_sample(&out, &info) == ReturnCode_t::RETCODE_OK && info.valid_data;
+      },
+      kDeliveryTimeout);
+}
+
+int matched(fdds::DataWriter* w) {
+  fdds::PublicationMatchedStatus st;
+  w->get_publication_matched_status(st);
+  return st.total_count;
+}
+int matched(fdds::DataReader* r) {
+  fdds::SubscriptionMatchedStatus st;
+  r->get_subscription_matched_status(st);
+  return st.total_count;
+}
+
+class Security : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() { keys_ = new SecureKeystores(); }
+  static void TearDownTestSuite() {
+    delete keys_;
+    keys_ = nullptr;
+  }
+
+  static ParticipantOptions options(const std::string& name, SecurityOptions security) {
+    ParticipantOptions o;
+    o.domain = dds_domain();
+    o.name = name;
+    o.security = std::move(security);
+    return o;
+  }
+  static SecurityOptions trusted(const std::string& enclave) { return {keys_->trusted(), enclave}; }
+  static SecurityOptions server_identity() { return trusted("mapmerge_server"); }
+
+  static SecureKeystores* keys_;
+};
+SecureKeystores* Security::keys_ = nullptr;
+
+// --- an authenticated robot is merged -------------------------------------------------------
+
+TEST_F(Security, AuthenticatedRobotMapReachesServerByteIdentical) {
+  const auto bytes = sample_map();
+  ASSERT_GT(bytes.size(), 100000u);
+  FastddsParticipant server(options("server", server_identity()));
+  auto* reader = server.create_reader(server.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic("r1")),
+                                      TopicKind::State);
+  FastddsParticipant robot(options("r1", trusted("r1")));
+  auto* writer = robot.create_writer(robot.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic("r1")),
+                                     TopicKind::State);
+  auto update = map_update("r1", "s-1", bytes);
+  ASSERT_TRUE(writer->write(&update));
+
+  mapmerge::MapUpdate received;
+  ASSERT_TRUE(fast_take_one(reader, received)) << "the authenticated robot's map never reached the server";
+  EXPECT_EQ(received.robot_id(), "r1");
+  EXPECT_EQ(received.session_id(), "s-1");
+  EXPECT_EQ(received.data(), bytes);
+}
+
+TEST_F(Security, MisconfiguredSecurityFailsInsteadOfRunningInsecure) {
+  EXPECT_THROW(FastddsParticipant(options("nobody", trusted("no_such_robot"))), wire::DdsError);
+  EXPECT_THROW(CycloneParticipant(dds_domain(), wire::ProfileSpec{}, trusted("no_such_robot")), wire::CycloneError);
+  EXPECT_THROW(FastddsParticipant(options("nowhere", SecurityOptions{"/nonexistent", "r1"})), wire::DdsError);
+}
+
+// --- a participant without a valid certificate is not matched -------------------------------
+
+TEST_F(Security, ParticipantsWithoutValidIdentityAreNotMatched) {
+  FastddsParticipant server(options("server", server_identity()));
+  auto* map_reader = server.create_reader(server.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic("r1")),
+                                          TopicKind::State);
+  auto* global_writer = server.create_writer(server.topic<mapmerge::GlobalMapPubSubType>(wire::kGlobalMapTopic),
+                                             TopicKind::State);
+  auto global = global_map("global", 1);
+  ASSERT_TRUE(global_writer->write(&global));
+
+  // Strangers: no security at all, and a certificate of another CA with a look-alike name.
+  FastddsParticipant plain(options("plain-r1", SecurityOptions{}));
+  FastddsParticipant stranger(options("other-ca-r1", SecurityOptions{keys_->other_ca(), "r1"}));
+  std::vector<fdds::DataWriter*> intruder_writers;
+  std::vector<fdds::DataReader*> intruder_readers;
+  for (FastddsParticipant* p : {&plain, &stranger}) {
+    auto* w = p->create_writer(p->topic<mapmerge::MapUpdatePubSubType>(wire::map_topic("r1")), TopicKind::State);
+    auto fake = map_update("r1", "intruder", {0xde, 0xad});
+    ASSERT_TRUE(w->write(&fake));
+    intruder_writers.push_back(w);
+    intruder_readers.push_back(
+        p->create_reader(p->topic<mapmerge::GlobalMapPubSubType>(wire::kGlobalMapTopic), TopicKind::State));
+  }
+
+  // Control: the real r1 gets through in both directions.
+  FastddsParticipant robot(options("r1", trusted("r1")));
+  auto* writer = robot.create_writer(robot.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic("r1")),
+                                     TopicKind::State);
+  auto* global_reader =
+      robot.create_reader(robot.topic<mapmerge::GlobalMapPubSubType>(wire::kGlobalMapTopic), TopicKind::State);
+  auto real = map_update("r1", "real", {1, 2, 3});
+  ASSERT_TRUE(writer->write(&real));
+  mapmerge::MapUpdate first;
+  ASSERT_TRUE(fast_take_one(map_reader, first)) << "control: the trusted r1 never reached the server";
+  mapmerge::GlobalMap got_global;
+  ASSERT_TRUE(fast_take_one(global_reader, got_global)) << "control: the trusted r1 never got the global map";
+
+  // The strangers had as long as the trusted robot, and now some more.
+  std::vector<mapmerge::MapUpdate> at_server{first};
+  eventually(
+      [&] {
+        for (auto& s : fast_take_all<mapmerge::MapUpdate>(map_reader)) at_server.push_back(s);
+        return false;
+      },
+      kQuietPeriod);
+  for (const auto& s : at_server) EXPECT_EQ(s.session_id(), "real") << "an intruder's map reached the server";
+  EXPECT_EQ(matched(map_reader), 1) << "the server matched a writer other than the trusted r1";
+  EXPECT_EQ(matched(global_writer), 1) << "the server's global map matched a reader other than the trusted r1";
+  for (auto* w : intruder_writers) EXPECT_EQ(matched(w), 0) << "an intruder's writer was matched";
+  for (auto* r : intruder_readers) {
+    EXPECT_EQ(matched(r), 0) << "an intruder's reader was matched";
+    EXPECT_TRUE(fast_take_all<mapmerge::GlobalMap>(r).empty()) << "an intruder read the global map";
+  }
+}
+
+// --- robot r1 trying to publish on r2's topic is refused ------------------------------------
+
+TEST_F(Security, RobotCannotWriteAnotherRobotsTopicOrTheServersFastdds) {
+  FastddsParticipant robot(options("r1", trusted("r1")));
+  EXPECT_NO_THROW(robot.create_writer(robot.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic("r1")),
+                                      TopicKind::State))
+      << "control: r1 may write its own map";
+  EXPECT_NO_THROW(robot.create_reader(robot.topic<mapmerge::GlobalMapPubSubType>(wire::kGlobalMapTopic),
+                                      TopicKind::State))
+      << "control: r1 may read the global map";
+  EXPECT_THROW(robot.create_writer(robot.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic("r2")),
+                                   TopicKind::State),
+               wire::DdsError)
+      << "r1 wrote on r2's map topic";
+  EXPECT_THROW(robot.create_writer(robot.topic<mapmerge::GlobalMapPubSubType>(wire::kGlobalMapTopic),
+                                   TopicKind::State),
+               wire::DdsError)
+      << "r1 wrote the global map";
+  EXPECT_THROW(robot.create_reader(robot.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic("r2")),
+                                   TopicKind::State),
+               wire::DdsError)
+      << "r1 read r2's map";
+}
+
+TEST_F(Security, RobotCannotWriteAnotherRobotsTopicCyclone) {
+  CycloneParticipant robot(dds_domain(), wire::ProfileSpec{}, trusted("r1"));
+  EXPECT_NO_THROW(robot.create_writer(robot.topic(&mapmerge_MapUpdate_desc, wire::map_topic("r1")), TopicKind::State))
+      << "control: r1 may write its own map";
+  EXPECT_THROW(robot.create_writer(robot.topic(&mapmerge_MapUpdate_desc, wire::map_topic("r2")), TopicKind::State),
+               wire::CycloneError)
+      << "r1 wrote on r2's map topic";
+  EXPECT_THROW(robot.create_writer(robot.topic(&mapmerge_GlobalMap_desc, wire::kGlobalMapTopic), TopicKind::State),
+               wire::CycloneError)
+      << "r1 wrote the global map";
+}
+
+TEST_F(Security, StolenPermissionsDoNotFitAnotherIdentity) {
+  // r1's key with r2's genuine permissions: the subject differs, the participant is refused.
+  EXPECT_THROW(FastddsParticipant(options("stolen", SecurityOptions{keys_->stolen(), "r1"})), wire::DdsError);
+  EXPECT_NO_THROW(FastddsParticipant(options("r1", trusted("r1")))) << "control";
+}
+
+TEST_F(Security, ForgedPermissionsAreRefusedByPeers) {
+  // r1's real key, with permissions granting the server's topics signed by another CA. Its own
+  // stack accepts them (it trusts the forger's permissions CA), so only the peers can refuse.
+  FastddsParticipant robot2(options("r2", trusted("r2")));
+  auto* reader =
+      robot2.create_reader(robot2.topic<mapmerge::GlobalMapPubSubType>(wire::kGlobalMapTopic), TopicKind::State);
+
+  FastddsParticipant forged(options("forged-r1", SecurityOptions{keys_->forged(), "r1"}));
+  fdds::DataWriter* forged_writer = nullptr;
+  ASSERT_NO_THROW(forged_writer = forged.create_writer(
+                      forged.topic<mapmerge::GlobalMapPubSubType>(wire::kGlobalMapTopic), TopicKind::State))
+      << "the forged permissions should pass the forger's own local checks";
+  auto fake = global_map("forged", 666);
+  ASSERT_TRUE(forged_writer->write(&fake));
+
+  FastddsParticipant server(options("server", server_identity()));
+  auto* writer = server.create_writer(server.topic<mapmerge::GlobalMapPubSubType>(wire::kGlobalMapTopic),
+                                      TopicKind::State);
+  auto real = global_map("global", 1);
+  ASSERT_TRUE(writer->write(&real));
+
+  mapmerge::GlobalMap first;
+  ASSERT_TRUE(fast_take_one(reader, first)) << "control: the server's global map never reached r2";
+  std::vector<mapmerge::GlobalMap> got{first};
+  eventually(
+      [&] {
+        for (auto& s : fast_take_all<mapmerge::GlobalMap>(reader)) got.push_back(s);
+        return false;
+      },
+      kQuietPeriod);
+  for (const auto& g : got) EXPECT_EQ(g.frame_id(), "global") << "a forged global map reached r2";
+  EXPECT_EQ(matched(reader), 1);
+  EXPECT_EQ(matched(forged_writer), 0) << "peers matched the forged writer";
+}
+
+// --- a secured Cyclone DDS robot interoperates with the secured Fast DDS server -------------
+
+TEST_F(Security, CycloneRobotMapReachesFastddsServerByteIdentical) {
+  auto bytes = sample_map();
+  FastddsParticipant server(options("server", server_identity()));
+  auto* reader = server.create_reader(server.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic("r2")),
+                                      TopicKind::State);
+
+  CycloneParticipant robot(dds_domain(), wire::ProfileSpec{}, trusted("r2"));
+  const dds_entity_t writer =
+      robot.create_writer(robot.topic(&mapmerge_MapUpdate_desc, wire::map_topic("r2")), TopicKind::State);
+  mapmerge_MapUpdate update{};
+  update.robot_id = const_cast<char*>("r2");
+  update.session_id = const_cast<char*>("cyclone");
+  update.sequence_number = 5;
+  update.frame_id = const_cast<char*>("r2/map");
+  update.resolution = 0.05;
+  update.encoding = const_cast<char*>("octomap-bt");
+  update.data._buffer = bytes.data();
+  update.data._length = static_cast<uint32_t>(bytes.size());
+  update.data._maximum = update.data._length;
+  update.data._release = false;
+  ASSERT_GE(dds_write(writer, &update), 0);
+
+  mapmerge::MapUpdate received;
+  ASSERT_TRUE(fast_take_one(reader, received)) << "the secured Cyclone robot's map never reached the server";
+  EXPECT_EQ(received.robot_id(), "r2");
+  EXPECT_EQ(received.sequence_number(), 5u);
+  EXPECT_EQ(received.data(), bytes);
+}
+
+TEST_F(Security, FastddsServerGlobalMapReachesCycloneRobot) {
+  FastddsParticipant server(options("server", server_identity()));
+  auto* writer = server.create_writer(server.topic<mapmerge::GlobalMapPubSubType>(wire::kGlobalMapTopic),
+                                      TopicKind::State);
+  auto global = global_map("global", 42);
+  global.data(sample_map());
+  ASSERT_TRUE(writer->write(&global));
+
+  CycloneParticipant robot(dds_domain(), wire::ProfileSpec{}, trusted("r1"));
+  const dds_entity_t reader =
+      robot.create_reader(robot.topic(&mapmerge_GlobalMap_desc, wire::kGlobalMapTopic), TopicKind::State);
+  std::vector<uint8_t> received;
+  uint64_t version = 0;
+  const bool got = eventually(
+      [&] {
+        void* samples[1] = {nullptr};
+        dds_sample_info_t info;
+        const dds_return_t n = dds_take(reader, samples, &info, 1, 1);
+        bool valid = false;
+        if (n > 0 && info.valid_data) {
+          const auto* g = static_cast<const mapmerge_GlobalMap*>(samples[0]);
+          received.assign(g->data._buffer, g->data._buffer + g->data._length);
+          version = g->version;
+          valid = true;
+        }
+        if (n > 0) dds_return_loan(reader, samples, n);
+        return valid;
+      },
+      kDeliveryTimeout);
+  ASSERT_TRUE(got) << "the server's global map never reached the secured Cyclone robot";
+  EXPECT_EQ(version, 42u);
+  EXPECT_EQ(received, global.data());
+}
+
+}  // namespace
+}  // namespace mapmerge::test
