@@ -1,16 +1,149 @@
+// `mapmerge merge TARGET SOURCE [-o merged.bt] [--config file.yaml] [--json]` (issue 3):
+// aligns SOURCE to TARGET, prints the result, optionally writes the fused map.
+#include <chrono>
+#include <cstdio>
+#include <future>
+#include <iomanip>
 #include <iostream>
+#include <memory>
+#include <sstream>
+
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <nlohmann/json.hpp>
 
 #include "commands.hpp"
+#include "mapmerge/align/align.hpp"
+#include "mapmerge/map/fusion.hpp"
+#include "mapmerge/map/map_io.hpp"
 
 namespace mapmerge::app {
+namespace {
 
-// Placeholder until the merge subcommand lands.
+/// Silences stderr (file descriptor 2) while alive: Debian's liboctomap reports every file it
+/// reads or writes there ("Reading binary octree...", "Writing N nodes").
+class QuietStderr {
+ public:
+  QuietStderr() {
+    std::fflush(stderr);
+    std::cerr.flush();
+    saved_ = ::dup(2);
+    const int null = ::open("/dev/null", O_WRONLY);
+    if (saved_ >= 0 && null >= 0) ::dup2(null, 2);
+    if (null >= 0) ::close(null);
+  }
+  ~QuietStderr() {
+    std::fflush(stderr);
+    std::cerr.flush();
+    if (saved_ >= 0) {
+      ::dup2(saved_, 2);
+      ::close(saved_);
+    }
+  }
+  QuietStderr(const QuietStderr&) = delete;
+  QuietStderr& operator=(const QuietStderr&) = delete;
+
+ private:
+  int saved_ = -1;
+};
+
+struct MergeOptions {
+  std::string target, source, output, config;
+  bool json = false;
+};
+
+std::string json_result(const align::AlignResult& r, double seconds) {
+  nlohmann::json j;
+  j["accepted"] = r.accepted;
+  std::vector<double> T;
+  for (int i = 0; i < 4; ++i)
+    for (int k = 0; k < 4; ++k) T.push_back(r.T_target_source(i, k));
+  j["T_target_source"] = T;
+  j["fitness"] = std::isfinite(r.fitness) ? nlohmann::json(r.fitness) : nlohmann::json(nullptr);
+  j["inliers"] = r.inliers;
+  j["overlap"] = r.overlap;
+  j["inlier_share"] = r.inlier_share;
+  j["submodel"] = r.submodel;
+  j["hypotheses"] = r.hypotheses;
+  j["reason"] = r.reason;
+  j["time_s"] = seconds;
+  j["stages"] = nlohmann::json::parse(align::timings_json(r.timings));
+  return j.dump();
+}
+
+void print_text(const align::AlignResult& r, double seconds) {
+  std::cout << (r.accepted ? "accepted" : "not accepted: " + r.reason) << "\n";
+  std::cout << std::fixed << std::setprecision(6) << "T_target_source =\n"
+            << r.T_target_source << "\n"
+            << "fitness " << r.fitness << " m, inliers " << r.inliers << ", overlap "
+            << std::setprecision(3) << r.overlap << ", inlier share " << r.inlier_share
+            << ", time " << seconds << " s\n";
+}
+
+int run_merge(const MergeOptions& o) {
+  const auto t0 = std::chrono::steady_clock::now();
+  align::AlignConfig config;
+  try {
+    if (!o.config.empty()) config = align::load_align_config(o.config);
+  } catch (const align::ConfigError& e) {
+    std::cerr << "mapmerge merge: " << e.what() << "\n";
+    return 2;
+  }
+  std::shared_ptr<octomap::OcTree> target, source;
+  try {
+    QuietStderr quiet;  // both files are read at once
+    auto pending = std::async(std::launch::async, [&] { return read_octree_file(o.source); });
+    target = read_octree_file(o.target);
+    source = pending.get();
+  } catch (const MapError& e) {
+    std::cerr << "mapmerge merge: " << e.what() << "\n";
+    return 1;
+  }
+  align::AlignResult result;
+  try {
+    result = align::align_maps(std::shared_ptr<const octomap::OcTree>(target),
+                               std::shared_ptr<const octomap::OcTree>(source), config);
+  } catch (const std::invalid_argument& e) {
+    std::cerr << "mapmerge merge: " << e.what() << "\n";
+    return 1;
+  }
+  if (result.accepted && !o.output.empty()) {
+    const FuseResult fused = fuse_into(*target, *source, result.T_target_source, FuseConfig{});
+    if (!fused.ok) {
+      std::cerr << "mapmerge merge: fusion failed: " << fused.reason << "\n";
+      return 1;
+    }
+    try {
+      QuietStderr quiet;
+      write_octree_file(*target, o.output);
+    } catch (const MapError& e) {
+      std::cerr << "mapmerge merge: " << e.what() << "\n";
+      return 1;
+    }
+  }
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  if (o.json) std::cout << json_result(result, seconds) << "\n";
+  else print_text(result, seconds);
+  if (!result.accepted && !o.output.empty() && !o.json)
+    std::cerr << "mapmerge merge: not accepted, " << o.output << " not written\n";
+  return result.accepted ? 0 : 3;
+}
+
+}  // namespace
+
 void add_merge_command(CLI::App& app, int& exit_code) {
-  auto* cmd = app.add_subcommand("merge", "(not implemented yet)");
-  cmd->callback([&exit_code] {
-    std::cerr << "mapmerge merge: not implemented yet\n";
-    exit_code = 2;
-  });
+  auto opts = std::make_shared<MergeOptions>();
+  auto* cmd = app.add_subcommand(
+      "merge", "Align SOURCE to TARGET (global search) and optionally write the fused map.\n"
+               "Exit codes: 0 accepted, 3 no hypothesis accepted, 1 bad input, 2 bad usage.");
+  cmd->add_option("TARGET", opts->target, "target map (.bt or .ot): defines the frame")->required();
+  cmd->add_option("SOURCE", opts->source, "source map (.bt or .ot): merged into TARGET's frame")->required();
+  cmd->add_option("-o,--output", opts->output, "write the fused map here (.bt, or .ot for log-odds)");
+  cmd->add_option("--config", opts->config, "YAML file with pipeline settings (see docs)");
+  cmd->add_flag("--json", opts->json, "print one JSON object on stdout");
+  cmd->callback([opts, &exit_code] { exit_code = run_merge(*opts); });
 }
 
 }  // namespace mapmerge::app

@@ -214,8 +214,9 @@ Eigen::Matrix4d icp(const PreparedMap::Impl& source, const Cloud::Ptr& target_cr
   tree.setInputCloud(target_crop);
   const std::size_t step = std::max<std::size_t>(1, source.cloud->size() / c.max_points);
   Eigen::Matrix4d T = T0;
+  const int ramp = std::max(1, c.max_iterations / 3);  // iterations to reach final_correspondence
   for (int it = 0; it < c.max_iterations; ++it) {
-    const double f = std::min(1.0, 2.0 * it / std::max(1, c.max_iterations));
+    const double f = std::min(1.0, static_cast<double>(it) / ramp);
     const double dmax = (c.max_correspondence + f * (c.final_correspondence - c.max_correspondence)) * res;
     const Normal6 sys = icp_system(*source.cloud, step, *target_crop, tree, T, dmax, c, dmax / 2.0);
     if (sys.pairs < 6) break;
@@ -348,7 +349,9 @@ std::vector<Candidate> shortlist(std::vector<Candidate> all, const ValidateConfi
     return score_of(a.coarse) > score_of(b.coarse);
   });
   std::vector<Candidate> out;
+  const double floor = all.empty() ? 0.0 : c.refine_score_ratio * score_of(all.front().coarse);
   for (const Candidate& cand : all) {
+    if (score_of(cand.coarse) < floor || score_of(cand.coarse) <= 0.0) break;
     bool dup = false;
     for (const Candidate& o : out)
       dup = dup || same_pose(o.h.T_target_source, cand.h.T_target_source, c.distinct_rotation_deg,
@@ -462,6 +465,17 @@ Validation validate(const PreparedMap& target, const PreparedMap& source,
 
 AlignResult align_maps(const octomap::OcTree& target, const octomap::OcTree& source,
                        const AlignConfig& config) {
+  const auto t_all = Clock::now();
+  PreparedMap t, s;
+  tbb::parallel_invoke([&] { t = prepare_map(target, config); },
+                       [&] { s = prepare_map(source, config); });
+  AlignResult r = align(t, s, config);
+  r.timings.total_ms = ms_since(t_all);
+  return r;
+}
+
+AlignResult align_maps(std::shared_ptr<const octomap::OcTree> target,
+                       std::shared_ptr<const octomap::OcTree> source, const AlignConfig& config) {
   const auto t_all = Clock::now();
   PreparedMap t, s;
   tbb::parallel_invoke([&] { t = prepare_map(target, config); },

@@ -76,6 +76,7 @@ void for_each_field(Config& c, F&& f) {
   f("validate", "distinct_translation", v.distinct_translation);
   f("validate", "coarse_points", v.coarse_points);
   f("validate", "refine_candidates", v.refine_candidates);
+  f("validate", "refine_score_ratio", v.refine_score_ratio);
   auto& r = c.refine;
   f("refine", "method", r.method);
   f("refine", "point_to_plane", r.point_to_plane);

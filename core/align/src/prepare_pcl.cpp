@@ -213,11 +213,17 @@ const PreparedMap::Impl& PreparedMap::impl() const {
 }
 
 PreparedMap prepare_map(const octomap::OcTree& tree, const AlignConfig& config) {
+  return prepare_map(std::make_shared<const octomap::OcTree>(tree), config);
+}
+
+PreparedMap prepare_map(std::shared_ptr<const octomap::OcTree> shared, const AlignConfig& config) {
+  if (!shared) throw std::invalid_argument("prepare_map: no tree");
   check_align_config(config);
   const auto t_start = Clock::now();
   auto m = std::make_shared<PreparedMap::Impl>();
+  const octomap::OcTree& tree = *shared;
   m->resolution = tree.getResolution();
-  m->tree = std::make_shared<const octomap::OcTree>(tree);
+  m->tree = std::move(shared);
 
   auto t0 = Clock::now();
   const std::vector<OccupiedPoint> points = to_points(tree, config.points);

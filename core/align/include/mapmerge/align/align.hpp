@@ -79,6 +79,8 @@ class PreparedMap {
 /// Stages 1, 2, 4, 5 for one map. Throws std::invalid_argument for an unusable map (no
 /// occupied voxel) or config.
 PreparedMap prepare_map(const octomap::OcTree& tree, const AlignConfig& config);
+/// Same, sharing the tree instead of copying it (the tree must not change afterwards).
+PreparedMap prepare_map(std::shared_ptr<const octomap::OcTree> tree, const AlignConfig& config);
 
 /// Global search: stages 3, 6, 7, 8. Never throws for "no alignment".
 AlignResult align(const PreparedMap& target, const PreparedMap& source, const AlignConfig& config);
@@ -94,6 +96,8 @@ Validation validate(const PreparedMap& target, const PreparedMap& source,
 /// prepare_map for both (in parallel) then align.
 AlignResult align_maps(const octomap::OcTree& target, const octomap::OcTree& source,
                        const AlignConfig& config);
+AlignResult align_maps(std::shared_ptr<const octomap::OcTree> target,
+                       std::shared_ptr<const octomap::OcTree> source, const AlignConfig& config);
 
 /// JSON object of the stage timings, e.g. {"to_points_ms": 3.1, ...}.
 std::string timings_json(const StageTimings& t);

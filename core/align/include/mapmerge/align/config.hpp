@@ -97,6 +97,7 @@ struct ValidateConfig {
   double distinct_translation = 10.0;  ///< ... or more than this [x res]
   std::size_t coarse_points = 1500;  ///< points sampled for the quick check of raw hypotheses [count]
   std::size_t refine_candidates = 4;  ///< best raw hypotheses refined and strictly validated [count]
+  double refine_score_ratio = 0.4;  ///< raw hypotheses scoring below this share of the best are not refined [0..1]
 };
 
 enum class RefineMethod { kIcp, kOicp, kNdt, kNone };

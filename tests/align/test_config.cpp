@@ -1,0 +1,64 @@
+#include <gtest/gtest.h>
+
+#include "mapmerge/align/config.hpp"
+
+namespace ma = mapmerge::align;
+
+TEST(AlignConfig, EmptyDocumentGivesDefaults) {
+  const ma::AlignConfig c = ma::parse_align_config("");
+  EXPECT_EQ(c.match.method, ma::MatchMethod::kRansac);
+  EXPECT_DOUBLE_EQ(c.validate.d_th, ma::ValidateConfig{}.d_th);
+}
+
+TEST(AlignConfig, SetsEveryKindOfValue) {
+  const ma::AlignConfig c = ma::parse_align_config(
+      "seed: 7\n"
+      "preprocess: {voxel_size: 3.5, remove_ground: true, z_min: -1, z_max: 2.5, pass_through: true}\n"
+      "describe: {method: shot}\n"
+      "match: {method: gcc, max_correspondences: 500}\n"
+      "refine: {method: ndt}\n"
+      "submodels: {enabled: true, block_size: 40}\n");
+  EXPECT_EQ(c.seed, 7U);
+  EXPECT_DOUBLE_EQ(c.preprocess.voxel_size, 3.5);
+  EXPECT_TRUE(c.preprocess.remove_ground);
+  EXPECT_DOUBLE_EQ(c.preprocess.z_max, 2.5);
+  EXPECT_EQ(c.describe.method, ma::Descriptor::kShot);
+  EXPECT_EQ(c.match.method, ma::MatchMethod::kGcc);
+  EXPECT_EQ(c.match.max_correspondences, 500U);
+  EXPECT_EQ(c.refine.method, ma::RefineMethod::kNdt);
+  EXPECT_TRUE(c.submodels.enabled);
+  EXPECT_DOUBLE_EQ(c.submodels.block_size, 40.0);
+}
+
+TEST(AlignConfig, UnknownKeysAreErrorsNamingTheKey) {
+  try {
+    ma::parse_align_config("match: {methd: gcc}\n");
+    FAIL() << "unknown key accepted";
+  } catch (const ma::ConfigError& e) {
+    EXPECT_NE(std::string(e.what()).find("match.methd"), std::string::npos) << e.what();
+  }
+  EXPECT_THROW(ma::parse_align_config("matching: {method: gcc}\n"), ma::ConfigError);
+  EXPECT_THROW(ma::parse_align_config("voxel_size: 3\n"), ma::ConfigError);
+}
+
+TEST(AlignConfig, BadValuesAreErrors) {
+  EXPECT_THROW(ma::parse_align_config("match: {method: magic}\n"), ma::ConfigError);
+  EXPECT_THROW(ma::parse_align_config("validate: {d_th: abc}\n"), ma::ConfigError);
+  EXPECT_THROW(ma::parse_align_config("validate: {d_th: -1}\n"), ma::ConfigError);
+  EXPECT_THROW(ma::parse_align_config("[1, 2]\n"), ma::ConfigError);
+  EXPECT_THROW(ma::parse_align_config("match: {method: [\n"), ma::ConfigError);
+  EXPECT_THROW(ma::load_align_config("/nonexistent/align.yaml"), ma::ConfigError);
+}
+
+TEST(AlignConfig, YamlDumpRoundTrips) {
+  ma::AlignConfig c;
+  c.match.method = ma::MatchMethod::kPrerejective;
+  c.refine.max_iterations = 17;
+  c.preprocess.z_min = -0.5;
+  const ma::AlignConfig back = ma::parse_align_config(ma::dump_align_config_yaml(c));
+  EXPECT_EQ(back.match.method, ma::MatchMethod::kPrerejective);
+  EXPECT_EQ(back.refine.max_iterations, 17);
+  EXPECT_DOUBLE_EQ(back.preprocess.z_min, -0.5);
+  EXPECT_EQ(ma::dump_align_config_yaml(back), ma::dump_align_config_yaml(c));
+  EXPECT_NE(ma::dump_align_config_json(c).find("\"prerejective\""), std::string::npos);
+}

@@ -1,0 +1,113 @@
+// `mapmerge merge` end to end: exit codes, JSON output, clear errors for bad input.
+#include <sys/wait.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+
+#include "mapmerge/align/map_cut.hpp"
+#include "mapmerge/map/map_io.hpp"
+
+namespace fs = std::filesystem;
+namespace ma = mapmerge::align;
+
+namespace {
+
+struct CliRun {
+  int code = -1;
+  std::string out;  ///< stdout and stderr
+  std::string stdout_only;
+};
+
+CliRun run_cli(const std::string& args) {
+  const std::string bin = std::string(MAPMERGE_BINARY_DIR) + "/bin/mapmerge";
+  const fs::path err = fs::temp_directory_path() / ("mm_cli_err_" + std::to_string(::getpid()));
+  CliRun r;
+  FILE* pipe = ::popen((bin + " " + args + " 2>" + err.string()).c_str(), "r");
+  if (pipe == nullptr) return r;
+  char buf[4096];
+  std::size_t n;
+  while ((n = std::fread(buf, 1, sizeof buf, pipe)) > 0) r.stdout_only.append(buf, n);
+  const int status = ::pclose(pipe);
+  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  std::ifstream e(err);
+  r.out = r.stdout_only + std::string(std::istreambuf_iterator<char>(e), {});
+  fs::remove(err);
+  return r;
+}
+
+class MergeCli : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = fs::temp_directory_path() / ("mm_cli_" + std::to_string(::getpid()));
+    fs::create_directories(dir_);
+    const auto tree = mapmerge::read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/fr_079.bt");
+    using Box = Eigen::AlignedBox3d;
+    const Box scene(Eigen::Vector3d(-10, -10, 0), Eigen::Vector3d(2, 10, 2));
+    const Box model(Eigen::Vector3d(-2, -10, 0), Eigen::Vector3d(10, 10, 2));
+    const Box far(Eigen::Vector3d(14, -10, 0), Eigen::Vector3d(26, 10, 2));
+    T_R_ = ma::make_transform(12, 6, 0.5, 5, 5, 60);
+    mapmerge::write_octree_file(*ma::cut_and_move(*tree, scene, Eigen::Matrix4d::Identity()), path("scene.bt"));
+    mapmerge::write_octree_file(*ma::cut_and_move(*tree, model, T_R_), path("model.ot"));
+    mapmerge::write_octree_file(*ma::cut_and_move(*tree, far, T_R_), path("far.bt"));
+    std::ofstream(path("empty.bt")).close();
+    std::ofstream(path("garbage.bt")) << "# Octomap OcTree binary file\nid OcTree\nres 0.05\ndata\n\x01\x02\x03";
+    std::ofstream(path("map.txt")) << "not a map";
+    std::ofstream(path("bad.yaml")) << "match: {methd: gcc}\n";
+  }
+  static void TearDownTestSuite() { fs::remove_all(dir_); }
+  static std::string path(const std::string& name) { return (dir_ / name).string(); }
+  static fs::path dir_;
+  static Eigen::Matrix4d T_R_;
+};
+fs::path MergeCli::dir_;
+Eigen::Matrix4d MergeCli::T_R_;
+
+}  // namespace
+
+TEST_F(MergeCli, AcceptedPairPrintsJsonAndWritesTheFusedMap) {
+  const CliRun r = run_cli("merge " + path("scene.bt") + " " + path("model.ot") + " --json -o " + path("merged.bt"));
+  ASSERT_EQ(r.code, 0) << r.out;
+  const auto j = nlohmann::json::parse(r.stdout_only);
+  EXPECT_TRUE(j.at("accepted").get<bool>());
+  ASSERT_EQ(j.at("T_target_source").size(), 16U);
+  Eigen::Matrix4d T;
+  for (int i = 0; i < 16; ++i) T(i / 4, i % 4) = j["T_target_source"][i].get<double>();
+  const Eigen::Matrix4d T_true = T_R_.inverse();
+  EXPECT_LT((T.topRightCorner<3, 1>() - T_true.topRightCorner<3, 1>()).norm(), 0.1);
+  EXPECT_GT(j.at("fitness").get<double>(), 0.0);
+  EXPECT_GT(j.at("time_s").get<double>(), 0.0);
+  EXPECT_TRUE(j.at("stages").contains("describe_ms"));
+  // No octomap chatter on stdout: the JSON parsed above is all of it.
+  const auto merged = mapmerge::read_octree_file(path("merged.bt"));
+  const auto scene = mapmerge::read_octree_file(path("scene.bt"));
+  using Box = Eigen::AlignedBox3d;
+  const Box all(Eigen::Vector3d::Constant(-1e6), Eigen::Vector3d::Constant(1e6));
+  EXPECT_GT(ma::count_occupied(*merged, all), ma::count_occupied(*scene, all) * 3 / 2);
+}
+
+TEST_F(MergeCli, NoOverlapExitsThreeAndWritesNothing) {
+  const CliRun r = run_cli("merge " + path("scene.bt") + " " + path("far.bt") + " --json -o " + path("none.bt"));
+  EXPECT_EQ(r.code, 3) << r.out;
+  EXPECT_FALSE(nlohmann::json::parse(r.stdout_only).at("accepted").get<bool>());
+  EXPECT_FALSE(fs::exists(path("none.bt")));
+}
+
+TEST_F(MergeCli, BadInputsExitOneWithAClearMessage) {
+  for (const std::string bad : {"empty.bt", "garbage.bt", "map.txt", "missing.bt"}) {
+    const CliRun r = run_cli("merge " + path("scene.bt") + " " + path(bad));
+    EXPECT_EQ(r.code, 1) << bad << ": " << r.out;
+    EXPECT_NE(r.out.find(bad), std::string::npos) << "message does not name the file: " << r.out;
+  }
+}
+
+TEST_F(MergeCli, BadUsageExitsTwo) {
+  EXPECT_EQ(run_cli("merge " + path("scene.bt")).code, 2);
+  EXPECT_EQ(run_cli("merge " + path("scene.bt") + " " + path("model.ot") + " --bogus").code, 2);
+  const CliRun r = run_cli("merge " + path("scene.bt") + " " + path("model.ot") + " --config " + path("bad.yaml"));
+  EXPECT_EQ(r.code, 2) << r.out;
+  EXPECT_NE(r.out.find("match.methd"), std::string::npos) << r.out;
+}

@@ -1,0 +1,144 @@
+// The whole pipeline on real maps cut into pairs with a known transform.
+#include <cmath>
+
+#include <gtest/gtest.h>
+
+#include "mapmerge/align/align.hpp"
+#include "mapmerge/align/map_cut.hpp"
+#include "mapmerge/map/map_io.hpp"
+
+namespace ma = mapmerge::align;
+using Box = Eigen::AlignedBox3d;
+
+namespace {
+
+std::shared_ptr<const octomap::OcTree> load(const std::string& name) {
+  return mapmerge::read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/" + name);
+}
+
+struct Errors {
+  double rot_deg, trans_m, t_err;
+};
+
+/// Errors of an estimated T_target_source against the truth T_true (same meaning).
+Errors errors(const Eigen::Matrix4d& T_est, const Eigen::Matrix4d& T_true) {
+  const Eigen::Matrix3d dR = T_est.topLeftCorner<3, 3>().transpose() * T_true.topLeftCorner<3, 3>();
+  const double rot = std::acos(std::clamp((dR.trace() - 1.0) / 2.0, -1.0, 1.0)) * 180.0 / M_PI;
+  const double trans = (T_est.topRightCorner<3, 1>() - T_true.topRightCorner<3, 1>()).norm();
+  // The paper's T_err with T_est and T_R in the model-from-scene direction.
+  const double t_err = (T_est.inverse() * T_true - Eigen::Matrix4d::Identity()).norm();
+  return {rot, trans, t_err};
+}
+
+Box box(double x0, double y0, double z0, double x1, double y1, double z1) {
+  return Box(Eigen::Vector3d(x0, y0, z0), Eigen::Vector3d(x1, y1, z1));
+}
+
+/// Target = `a` in the world frame; source = `b` moved by T_R, so T_target_source = T_R^-1.
+struct Pair {
+  std::shared_ptr<const octomap::OcTree> target, source;
+  Eigen::Matrix4d T_true;
+};
+
+Pair make_pair(const octomap::OcTree& tree, const Box& a, const Box& b, const Eigen::Matrix4d& T_R) {
+  return {ma::cut_and_move(tree, a, Eigen::Matrix4d::Identity()), ma::cut_and_move(tree, b, T_R),
+          T_R.inverse()};
+}
+
+const octomap::OcTree& fr079() {
+  static const auto tree = load("fr_079.bt");
+  return *tree;
+}
+
+}  // namespace
+
+TEST(AlignPipeline, RecoversThePapersPair) {
+  // ../shared/data/README.md: scene (-10,-10,0)-(2,10,2), model (-2,-10,0)-(10,10,2) moved by
+  // T_R = (12, 6, 0.5, 5°, 5°, 60°); overlap about 24 %.
+  const Pair p = make_pair(fr079(), box(-10, -10, 0, 2, 10, 2), box(-2, -10, 0, 10, 10, 2),
+                           ma::make_transform(12, 6, 0.5, 5, 5, 60));
+  const ma::AlignResult r = ma::align_maps(p.target, p.source, ma::AlignConfig{});
+  ASSERT_TRUE(r.accepted) << r.reason;
+  const Errors e = errors(r.T_target_source, p.T_true);
+  EXPECT_LT(e.rot_deg, 1.0);
+  EXPECT_LT(e.trans_m, 0.1);
+  EXPECT_LT(e.t_err, 0.1);  // the paper: 0.21
+  EXPECT_LT(r.fitness, 0.05);
+  EXPECT_GT(r.inliers, 100U);
+  EXPECT_GT(r.overlap, 0.1);
+}
+
+TEST(AlignPipeline, RecoversLargeYawOnACoarserMap) {
+  const auto tree = load("geb079.bt");  // 8 cm
+  const Pair p = make_pair(*tree, box(-9, -9, -1, 12, 9, 4), box(6, -9, -1, 31, 9, 4),
+                           ma::make_transform(-4, 7, 0.3, -3, 2, 155));
+  const ma::AlignResult r = ma::align_maps(p.target, p.source, ma::AlignConfig{});
+  ASSERT_TRUE(r.accepted) << r.reason;
+  const Errors e = errors(r.T_target_source, p.T_true);
+  EXPECT_LT(e.rot_deg, 1.0);
+  EXPECT_LT(e.trans_m, 2 * tree->getResolution());
+}
+
+TEST(AlignPipeline, RecoversARoomWithSubmodels) {
+  const auto tree = load("fr_078_tidyup.bt");
+  const Pair p = make_pair(*tree, box(-11, -9, -2, -1, 6, 4), box(-6, -9, -2, 3, 6, 4),
+                           ma::make_transform(3, -2, 0, 2, -2, -100));
+  ma::AlignConfig c;
+  c.submodels.enabled = true;
+  const ma::AlignResult r = ma::align_maps(p.target, p.source, c);
+  ASSERT_TRUE(r.accepted) << r.reason;
+  const Errors e = errors(r.T_target_source, p.T_true);
+  EXPECT_LT(e.rot_deg, 1.0);
+  EXPECT_LT(e.trans_m, 2 * tree->getResolution());
+  EXPECT_GE(r.submodel, 0);
+}
+
+TEST(AlignPipeline, DisjointPartsOfTheSameCorridorAreNotAccepted) {
+  // Two stretches of the same repetitive corridor with no common voxel.
+  const Pair p = make_pair(fr079(), box(-10, -10, -1, 2, 10, 3), box(8, -10, -1, 20, 10, 3),
+                           ma::make_transform(5, 5, 0, 0, 0, 90));
+  const ma::AlignResult r = ma::align_maps(p.target, p.source, ma::AlignConfig{});
+  EXPECT_FALSE(r.accepted) << "accepted a transform between disjoint maps";
+  EXPECT_FALSE(r.reason.empty());
+  EXPECT_TRUE(r.T_target_source.isIdentity());
+}
+
+TEST(AlignPipeline, DifferentBuildingsAreNotAccepted) {
+  const auto room = load("fr_078_tidyup.bt");
+  std::shared_ptr<const octomap::OcTree> corridor = ma::cut_and_move(fr079(), box(-10, -10, -1, 5, 10, 3), Eigen::Matrix4d::Identity());
+  const ma::AlignResult r = ma::align_maps(room, corridor,
+                                           ma::AlignConfig{});
+  EXPECT_FALSE(r.accepted);
+}
+
+TEST(AlignPipeline, RefineFromAKnownTransformAndValidate) {
+  const Pair p = make_pair(fr079(), box(-10, -10, 0, 2, 10, 2), box(-4, -10, 0, 8, 10, 2),
+                           ma::make_transform(-3, 2, 0.2, 1, -1, -35));
+  const ma::AlignConfig c;
+  const ma::PreparedMap target = ma::prepare_map(p.target, c);
+  const ma::PreparedMap source = ma::prepare_map(p.source, c);
+  // Start 0.25 m and 3 degrees off (a robot's map grew or drifted).
+  const Eigen::Matrix4d T0 = ma::make_transform(0.2, -0.15, 0.0, 0, 0, 3) * p.T_true;
+  const ma::AlignResult r = ma::refine(target, source, T0, c);
+  ASSERT_TRUE(r.accepted) << r.reason;
+  const Errors e = errors(r.T_target_source, p.T_true);
+  EXPECT_LT(e.rot_deg, 0.5);
+  EXPECT_LT(e.trans_m, 0.05);
+
+  const ma::Validation right = ma::validate(target, source, p.T_true, c);
+  EXPECT_GT(right.inlier_share, 0.9);
+  EXPECT_LT(right.fitness, 0.05);
+  // The same corridor turned by 180 degrees about its centre lands walls in free space.
+  const Eigen::Matrix4d flip = ma::make_transform(0, 0, 0, 0, 0, 180) * p.T_true;
+  const ma::Validation wrong = ma::validate(target, source, flip, c);
+  EXPECT_LT(wrong.inlier_share, right.inlier_share);
+  const ma::AlignResult from_wrong = ma::refine(target, source, flip, c);
+  if (from_wrong.accepted) {
+    EXPECT_LT(errors(from_wrong.T_target_source, p.T_true).rot_deg, 5.0) << "refine accepted a wrong transform";
+  }
+}
+
+TEST(AlignPipeline, EmptyMapIsAClearError) {
+  const octomap::OcTree empty(0.05);
+  EXPECT_THROW(ma::prepare_map(empty, ma::AlignConfig{}), std::invalid_argument);
+}

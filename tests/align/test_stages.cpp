@@ -1,0 +1,152 @@
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+#include <gtest/gtest.h>
+
+#include <Eigen/Geometry>
+
+#include "mapmerge/align/map_cut.hpp"
+#include "mapmerge/align/stages.hpp"
+#include "mapmerge/map/map_io.hpp"
+
+namespace ma = mapmerge::align;
+
+TEST(ToPoints, ExpandsPrunedLeavesAndKeepsOccupancy) {
+  octomap::OcTree tree(0.1);
+  // A 2x2x2 block of occupied voxels aligned to a depth-15 node: pruned into one leaf.
+  for (int i = 0; i < 2; ++i)
+    for (int j = 0; j < 2; ++j)
+      for (int k = 0; k < 2; ++k) tree.updateNode(0.05 + 0.1 * i, 0.05 + 0.1 * j, 0.05 + 0.1 * k, true);
+  tree.updateNode(1.05, 1.05, 1.05, false);  // free: not a point
+  tree.updateNode(2.05, 2.05, 2.05, true);
+  tree.prune();
+  ASSERT_LT(tree.getNumLeafNodes(), 10U);  // the block really is one pruned leaf
+  const auto points = ma::to_points(tree, {});
+  ASSERT_EQ(points.size(), 9U);
+  for (const auto& p : points) {
+    EXPECT_NEAR(p.occupancy, tree.search(p.position.x(), p.position.y(), p.position.z())->getOccupancy(), 1e-6);
+    EXPECT_GT(p.occupancy, 0.5F);
+    EXPECT_GT((p.position - Eigen::Vector3f(1.05F, 1.05F, 1.05F)).norm(), 0.01F);
+  }
+}
+
+TEST(ToPoints, RealMapCountsEveryOccupiedVoxel) {
+  const auto tree = mapmerge::read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/geb079.bt");
+  const auto points = ma::to_points(*tree, {});
+  const Eigen::AlignedBox3d all(Eigen::Vector3d::Constant(-1e6), Eigen::Vector3d::Constant(1e6));
+  EXPECT_EQ(points.size(), ma::count_occupied(*tree, all));
+  EXPECT_GT(points.size(), tree->getNumLeafNodes() / 10);
+  ma::ToPointsConfig tight;
+  tight.max_points = 1000;
+  EXPECT_THROW(ma::to_points(*tree, tight), std::invalid_argument);
+}
+
+TEST(Fitness, HandComputedCase) {
+  // Pairs at 0.01, 0.02, 0.5 and 0.03 m; d_th 0.1: the 0.5 m pair has weight 0 (Eq. 7).
+  const std::vector<double> d{0.01, 0.02, 0.5, 0.03};
+  const ma::Fitness f = ma::fitness_from_distances(d, 0.1, 3);
+  EXPECT_EQ(f.n_w, 3U);
+  EXPECT_NEAR(f.value, (0.01 + 0.02 + 0.03) / 3.0, 1e-12);
+  // n_w < n_th: +inf (Eq. 6).
+  EXPECT_TRUE(std::isinf(ma::fitness_from_distances(d, 0.1, 4).value));
+  EXPECT_TRUE(std::isinf(ma::fitness_from_distances({}, 0.1, 0).value));
+}
+
+TEST(Fitness, NearestNeighbourPairs) {
+  const std::vector<Eigen::Vector3f> target{{0, 0, 0}, {1, 0, 0}, {0, 1, 0}};
+  const std::vector<Eigen::Vector3f> source{{0.01F, 0, 0}, {1, 0.02F, 0}, {5, 5, 5}, {0, 1.04F, 0}};
+  const ma::Fitness f = ma::fitness_score(source, target, 0.05, 2);
+  EXPECT_EQ(f.n_w, 3U);
+  EXPECT_NEAR(f.value, (0.01 + 0.02 + 0.04) / 3.0, 1e-6);
+}
+
+/// A flat 2 m x 2 m floor (grid spacing h) with a 0.2 m box standing in its middle.
+std::vector<Eigen::Vector3f> floor_with_box(float h) {
+  std::vector<Eigen::Vector3f> pts;
+  const int n = static_cast<int>(std::lround(2.0F / h));
+  const int b0 = static_cast<int>(std::lround(0.9F / h)), b1 = static_cast<int>(std::lround(1.1F / h));
+  for (int i = 0; i <= n; ++i)
+    for (int j = 0; j <= n; ++j) {
+      const bool under_box = i > b0 && i < b1 && j > b0 && j < b1;
+      if (!under_box) pts.emplace_back(i * h, j * h, 0.0F);
+    }
+  for (int i = b0; i <= b1; ++i)
+    for (int j = b0; j <= b1; ++j)
+      for (int k = 1; k <= b1 - b0; ++k) {
+        const bool surface = i == b0 || i == b1 || j == b0 || j == b1 || k == b1 - b0;
+        if (surface) pts.emplace_back(i * h, j * h, k * h);
+      }
+  return pts;
+}
+
+TEST(Iss, FlatSurfaceHasNoKeypointsTheBoxHas) {
+  const float h = 0.02F;
+  const auto pts = floor_with_box(h);
+  ma::KeypointConfig c;  // defaults: salient radius 6 h, non-max radius 4 h
+  const auto kp = ma::iss_keypoints(pts, c, h);
+  ASSERT_FALSE(kp.empty());
+  const Eigen::Vector2f centre(1.0F, 1.0F);
+  std::size_t near_box = 0;
+  for (std::size_t idx : kp) {
+    const Eigen::Vector3f& p = pts[idx];
+    // Distance to the box footprint (0.9..1.1) and to the floor's outer border.
+    const float dx = std::max(0.0F, std::abs(p.x() - centre.x()) - 0.1F);
+    const float dy = std::max(0.0F, std::abs(p.y() - centre.y()) - 0.1F);
+    const float to_box = std::hypot(dx, dy);
+    const float to_border = std::min({p.x(), p.y(), 2.0F - p.x(), 2.0F - p.y()});
+    // Eq. 3: on a plane lambda2/lambda1 is ~1, above gamma_21, so the open floor has none.
+    EXPECT_TRUE(to_box < 7 * h || to_border < 7 * h) << "keypoint on the flat floor at " << p.transpose();
+    near_box += to_box < 7 * h ? 1 : 0;
+  }
+  EXPECT_GT(near_box, 0U);
+}
+
+TEST(Iss, KeypointsMoveWithTheShape) {
+  const float h = 0.02F;
+  const auto pts = floor_with_box(h);
+  ma::KeypointConfig c;
+  const auto kp = ma::iss_keypoints(pts, c, h);
+  // Rotated by 30 degrees about z and shifted: the scatter matrices' eigenvalues do not change.
+  const Eigen::Affine3f T = Eigen::Translation3f(3.0F, -1.0F, 0.5F) *
+                            Eigen::AngleAxisf(0.5236F, Eigen::Vector3f::UnitZ());
+  std::vector<Eigen::Vector3f> moved;
+  for (const auto& p : pts) moved.push_back(T * p);
+  const auto kp_moved = ma::iss_keypoints(moved, c, h);
+  // Ties between symmetric points may break differently after rounding: compare positions.
+  std::size_t same = 0;
+  for (std::size_t i : kp) {
+    bool found = false;
+    for (std::size_t j : kp_moved) found = found || (moved[j] - T * pts[i]).norm() < 3 * h;
+    same += found ? 1 : 0;
+  }
+  EXPECT_GE(same * 10, kp.size() * 7) << same << " of " << kp.size();
+}
+
+TEST(Submodels, SpiralFromTheBorderCoversEveryPoint) {
+  std::vector<Eigen::Vector3f> pts;
+  for (int i = 0; i < 100; ++i)
+    for (int j = 0; j < 100; ++j) pts.emplace_back(i * 0.1F, j * 0.1F, 0.0F);
+  ma::SubmodelConfig c;
+  c.block_size = 20.0;  // 2 m at 0.1 m
+  c.block_overlap = 0.0;
+  const auto blocks = ma::make_submodels(pts, c, 0.1);
+  ASSERT_EQ(blocks.size(), 25U);  // 10 m / 2 m = 5 x 5
+  std::vector<int> seen(pts.size(), 0);
+  for (const auto& b : blocks)
+    for (std::size_t m : b.members) ++seen[m];
+  for (int s : seen) EXPECT_EQ(s, 1);
+  // The first 16 blocks form the outer ring, the centre block comes last.
+  auto on_border = [](const ma::Block& b) {
+    return b.min.x() < 0.5F || b.min.y() < 0.5F || b.max.x() > 9.5F || b.max.y() > 9.5F;
+  };
+  for (std::size_t i = 0; i < 16; ++i) EXPECT_TRUE(on_border(blocks[i])) << i;
+  for (std::size_t i = 16; i < 25; ++i) EXPECT_FALSE(on_border(blocks[i])) << i;
+  EXPECT_NEAR(blocks.back().min.x(), 4.0F, 1e-4F);
+  EXPECT_NEAR(blocks.back().min.y(), 4.0F, 1e-4F);
+  // With overlap, points are shared by neighbouring blocks.
+  c.block_overlap = 0.5;
+  std::size_t members = 0;
+  for (const auto& b : ma::make_submodels(pts, c, 0.1)) members += b.members.size();
+  EXPECT_GT(members, 2 * pts.size());
+}
