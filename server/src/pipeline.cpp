@@ -111,6 +111,7 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
   std::sort(candidates.begin(), candidates.end(),
             [](const auto& a, const auto& b) { return a->tree->size() > b->tree->size(); });
   for (const auto& other : candidates) {
+    if (hooks_.cancelled && hooks_.cancelled()) return;
     const auto target = prepared(other->robot_id);
     if (!target) continue;
     spdlog::info("merge {} <- {}: global search started", other->robot_id, rec.robot_id);

@@ -22,6 +22,7 @@ Server::Server(ServerConfig config) : config_(std::move(config)) {
     dirty_ = true;
     cv_.notify_all();
   };
+  hooks.cancelled = [this] { return stopping_.load(); };
   pipeline_ = std::make_unique<Pipeline>(config_, registry_, store_.get(), hooks);
   restore();
   scheduler_ = std::make_unique<Scheduler>(config_.merge.threads,

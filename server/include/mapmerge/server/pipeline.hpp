@@ -31,6 +31,7 @@ class Pipeline {
   struct Hooks {
     std::function<void(const std::string& robot)> retry;  ///< ask for another turn of a robot
     std::function<void()> changed;                        ///< maps or poses changed: republish
+    std::function<bool()> cancelled;                      ///< true once the server shuts down
   };
 
   /// `store` may be null (no persistence).

@@ -1,0 +1,118 @@
+#pragma once
+/// Test fleet around a real mapmerge-server: robots publishing maps cut from a real map with
+/// known transforms, and a listener holding the latest global map and poses.
+
+#include <chrono>
+#include <condition_variable>
+#include <cstdint>
+#include <functional>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+#include <octomap/OcTree.h>
+
+#include "mapmerge/wire/fastdds.hpp"
+
+namespace mapmerge::test {
+
+/// A robot's map: the part of `world` inside `box`, moved into the robot's frame.
+struct RobotMap {
+  std::string id;
+  std::shared_ptr<const octomap::OcTree> tree;
+  Eigen::Matrix4d T_robot_world = Eigen::Matrix4d::Identity();
+};
+RobotMap cut_robot_map(const octomap::OcTree& world, const std::string& id, const Eigen::AlignedBox3d& box,
+                       const Eigen::Matrix4d& T_robot_world);
+std::shared_ptr<const octomap::OcTree> load_data_map(const std::string& name);
+
+/// A robot publishing native MapUpdates on rt/<id>/mapmerge/map.
+class RobotPublisher {
+ public:
+  RobotPublisher(int domain, const std::string& id, const wire::ProfileSpec& profile = {});
+  ~RobotPublisher();
+  /// Publishes `tree` (sequence numbers count from 1 unless given).
+  void publish(const octomap::OcTree& tree, const std::string& session = "s1", std::uint64_t sequence = 0);
+  /// Publishes raw bytes as a map update (for bad input).
+  void publish_bytes(const std::vector<std::uint8_t>& bytes, const std::string& robot_field,
+                     const std::string& session, std::uint64_t sequence);
+
+ private:
+  std::string id_;
+  std::uint64_t sequence_ = 0;
+  std::unique_ptr<wire::FastddsParticipant> participant_;
+  eprosima::fastdds::dds::DataWriter* writer_ = nullptr;
+};
+
+struct ReceivedPose {
+  Eigen::Matrix4d T_global_robot = Eigen::Matrix4d::Identity();
+  int status = 0;  ///< mapmerge::PoseStatus: 0 unknown, 1 aligned, 2 rejected
+  std::uint64_t global_version = 0;
+  double fitness = 0.0;
+};
+
+struct ReceivedGlobal {
+  std::uint64_t version = 0;
+  std::shared_ptr<octomap::OcTree> tree;
+  std::vector<std::string> contributors;
+  std::chrono::steady_clock::time_point received;
+};
+
+struct ReceivedMerge {
+  std::string target, source;
+  bool accepted = false;
+  bool global_search = true;
+};
+
+/// The last server status seen.
+struct ReceivedStatus {
+  std::uint64_t updates_received = 0, updates_rejected = 0, merges_run = 0, merges_coalesced = 0;
+  std::uint64_t global_version = 0;
+  std::map<std::string, std::uint64_t> accepted;  ///< per robot: updates accepted
+  std::map<std::string, std::uint64_t> rejected;  ///< per robot: updates rejected
+  std::map<std::string, std::string> last_error;
+};
+
+/// An operator's view: latest global map (native and ROS 2), poses, tf child frames.
+class FleetListener {
+ public:
+  explicit FleetListener(int domain, const wire::ProfileSpec& profile = {});
+  ~FleetListener();
+
+  /// Waits until `pred()` holds (checked on every sample and every 100 ms) or `timeout`.
+  bool wait_for(const std::function<bool()>& pred, std::chrono::seconds timeout);
+  /// Asks the server to republish (rt/mapmerge/request).
+  void request();
+
+  std::map<std::string, ReceivedPose> poses() const;
+  ReceivedGlobal global() const;
+  std::uint64_t ros_global_bytes() const;
+  std::vector<std::string> tf_children() const;
+  std::size_t globals_received() const;
+  /// Every merge report seen on the status topic (deduplicated by pair, kind and stamp).
+  std::vector<ReceivedMerge> merges() const;
+  ReceivedStatus status() const;
+
+  struct Impl;
+
+ private:
+  std::unique_ptr<Impl> impl_;
+};
+
+/// Pose errors of an estimate against the truth.
+double rotation_error_deg(const Eigen::Matrix4d& T_true, const Eigen::Matrix4d& T_est);
+double translation_error_m(const Eigen::Matrix4d& T_true, const Eigen::Matrix4d& T_est);
+
+/// Share of the occupied voxels of `expected` (every `stride`-th) that are occupied in `map`
+/// within one voxel, after moving them by T_map_expected.
+double occupied_coverage(const octomap::OcTree& map, const octomap::OcTree& expected,
+                         const Eigen::Matrix4d& T_map_expected, int stride = 7);
+
+/// A fresh directory under the test's temp dir.
+std::string temp_dir(const std::string& name);
+
+}  // namespace mapmerge::test
