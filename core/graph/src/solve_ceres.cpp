@@ -162,7 +162,7 @@ bool estimate_covariance(const WorkGraph& g, const std::vector<char>& connected,
   }
   if (free_nodes.empty()) return true;
   ceres::Covariance::Options options;
-  options.algorithm_type = free_nodes.size() <= 100 ? ceres::DENSE_SVD : ceres::SPARSE_QR;
+  options.algorithm_type = ceres::SPARSE_QR;
   options.num_threads = 1;
   ceres::Covariance estimator(options);
   if (!estimator.Compute(pairs, &problem)) return false;

@@ -1,0 +1,218 @@
+// Bench of core/graph (issue 8): global pose error of spanning-tree chaining versus the
+// optimised pose graph for 4, 8 and 16 robots on the real fr_079 map (fleet_sim.hpp), with and
+// without one wrong edge, and the cost of one optimisation for 16 robots (cold and warm).
+//
+//   bench_graph [--trials N] [--timing-runs N] [--timing-only 1]
+// Prints Markdown (the tables of bench/results/graph.md).
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <ctime>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "fleet_sim.hpp"
+#include "mapmerge/graph/pose_graph.hpp"
+
+namespace mg = mapmerge::graph;
+namespace sim = mapmerge::graph::sim;
+
+namespace {
+
+struct Options {
+  int trials = 50;       // seeded fleets per robot count
+  int timing_runs = 200;  // optimisations timed for 16 robots
+  bool timing_only = false;
+};
+
+Options parse(int argc, char** argv) {
+  Options o;
+  for (int i = 1; i + 1 < argc; i += 2) {
+    const std::string a = argv[i];
+    if (a == "--trials") o.trials = std::atoi(argv[i + 1]);
+    else if (a == "--timing-runs") o.timing_runs = std::atoi(argv[i + 1]);
+    else if (a == "--timing-only") o.timing_only = std::atoi(argv[i + 1]) != 0;
+  }
+  return o;
+}
+
+struct Errors {
+  std::vector<double> mean_t, max_t, mean_r, max_r;  // per trial [m], [deg]
+  void add(const mg::GraphSolution& s, const sim::Fleet& f, int reference) {
+    double st = 0.0, mt = 0.0, sr = 0.0, mr = 0.0;
+    int n = 0;
+    for (std::size_t i = 0; i < f.ids.size(); ++i) {
+      if (static_cast<int>(i) == reference) continue;
+      const mg::RobotSolution* r = s.robot(f.ids[i]);
+      if (!r->connected) continue;
+      const sim::PoseError e = sim::pose_error(r->T_global_robot, f.truth(reference, static_cast<int>(i)));
+      st += e.translation;
+      sr += e.rotation_deg;
+      mt = std::max(mt, e.translation);
+      mr = std::max(mr, e.rotation_deg);
+      ++n;
+    }
+    mean_t.push_back(n ? st / n : 0.0);
+    mean_r.push_back(n ? sr / n : 0.0);
+    max_t.push_back(mt);
+    max_r.push_back(mr);
+  }
+};
+
+/// CPU time of this thread [ms]: the machine is shared, wall time includes waiting.
+double thread_cpu_ms() {
+  timespec ts{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
+  return static_cast<double>(ts.tv_sec) * 1e3 + static_cast<double>(ts.tv_nsec) * 1e-6;
+}
+
+double mean(const std::vector<double>& v) {
+  double s = 0.0;
+  for (double x : v) s += x;
+  return v.empty() ? 0.0 : s / static_cast<double>(v.size());
+}
+double maximum(const std::vector<double>& v) { return v.empty() ? 0.0 : *std::max_element(v.begin(), v.end()); }
+double percentile(std::vector<double> v, double p) {
+  if (v.empty()) return 0.0;
+  std::sort(v.begin(), v.end());
+  return v[static_cast<std::size_t>(p * static_cast<double>(v.size() - 1) + 0.5)];
+}
+
+sim::FleetConfig fleet_config(int robots, unsigned seed) {
+  sim::FleetConfig c;
+  c.robots = robots;
+  c.region_length = 14.0;  // every robot maps 14 m of the corridor: long chains for 4 robots
+  c.seed = seed;
+  return c;
+}
+
+void accuracy(const Options& o) {
+  std::printf("## Accuracy (reference = robot00 at one end of the corridor; %d seeded fleets per row)\n\n", o.trials);
+  std::printf("Errors of T_global_robot against truth over the non-reference robots: per fleet the mean and the max,\n"
+              "then averaged (mean) or maximised (max) over the fleets.\n\n");
+  std::printf("| robots | edges (mean) | chain mean [m] | graph mean [m] | chain max [m] | graph max [m] | "
+              "chain mean [deg] | graph mean [deg] | chain max [deg] | graph max [deg] | graph <= chain (fleets) |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|---|\n");
+  for (int robots : {4, 8, 16}) {
+    Errors chain, graph;
+    double edges = 0.0;
+    int better = 0;
+    for (int t = 0; t < o.trials; ++t) {
+      const sim::Fleet f = sim::make_fleet(sim::world(MAPMERGE_DATA_DIR "/fr_079.bt"),
+                                           fleet_config(robots, 1000u + static_cast<unsigned>(t)));
+      mg::PoseGraph g;
+      sim::load(g, f, 0);
+      chain.add(g.chain({}), f, 0);
+      graph.add(g.optimise({}), f, 0);
+      edges += static_cast<double>(f.edges.size());
+      better += graph.mean_t.back() <= chain.mean_t.back() + 1e-9 ? 1 : 0;
+    }
+    std::printf("| %d | %.1f | %.3f | %.3f | %.3f | %.3f | %.2f | %.2f | %.2f | %.2f | %d / %d |\n", robots,
+                edges / o.trials, mean(chain.mean_t), mean(graph.mean_t), maximum(chain.max_t),
+                maximum(graph.max_t), mean(chain.mean_r), mean(graph.mean_r), maximum(chain.max_r),
+                maximum(graph.max_r), better, o.trials);
+  }
+  std::printf("\n");
+}
+
+void wrong_edge(const Options& o) {
+  std::printf("## One wrong edge (a random edge turned 90..180 deg about z at its pivot)\n\n");
+  std::printf("| robots | wrong edge rejected | correct edges rejected (total) | robots left unknown (total) | "
+              "robots with a wrong pose (> 1 deg or > 0.5 m) | graph mean [m] | graph max [m] |\n");
+  std::printf("|---|---|---|---|---|---|---|\n");
+  for (int robots : {4, 8, 16}) {
+    int caught = 0, false_rejections = 0, lost = 0, wrong_poses = 0;
+    Errors graph;
+    for (int t = 0; t < o.trials; ++t) {
+      sim::Fleet f = sim::make_fleet(sim::world(MAPMERGE_DATA_DIR "/fr_079.bt"),
+                                     fleet_config(robots, 2000u + static_cast<unsigned>(t)));
+      std::mt19937 rng(static_cast<unsigned>(t));
+      const std::size_t k = std::uniform_int_distribution<std::size_t>(0, f.edges.size() - 1)(rng);
+      sim::make_wrong(f, k, std::uniform_real_distribution<double>(90.0, 180.0)(rng));
+      mg::PoseGraph g;
+      sim::load(g, f, 0);
+      const mg::GraphSolution s = g.optimise({});
+      const std::string wrong_id = mg::default_edge_id(f.edges[k].edge.source, f.edges[k].edge.target);
+      for (const auto& e : s.edges) {
+        if (e.id == wrong_id) caught += e.state == mg::EdgeState::kRejected ? 1 : 0;
+        else false_rejections += e.state == mg::EdgeState::kRejected ? 1 : 0;
+      }
+      for (std::size_t i = 0; i < f.ids.size(); ++i) {
+        const mg::RobotSolution* r = s.robot(f.ids[i]);
+        if (!r->connected) {
+          ++lost;
+          continue;
+        }
+        const sim::PoseError e = sim::pose_error(r->T_global_robot, f.truth(0, static_cast<int>(i)));
+        wrong_poses += (e.rotation_deg > 1.0 || e.translation > 0.5) ? 1 : 0;
+      }
+      graph.add(s, f, 0);
+    }
+    std::printf("| %d | %d / %d | %d | %d | %d | %.3f | %.3f |\n", robots, caught, o.trials, false_rejections,
+                lost, wrong_poses, mean(graph.mean_t), maximum(graph.max_t));
+  }
+  std::printf("\n");
+}
+
+void timing(const Options& o) {
+  using Clock = std::chrono::steady_clock;
+  std::vector<double> cold_cpu, warm_cpu;
+  std::vector<double> cold, warm, consistency, solve, covariance, warm_iterations, cold_iterations;
+  const int fleets = 10;
+  double edges = 0.0;
+  for (int t = 0; t < o.timing_runs; ++t) {
+    const sim::Fleet f = sim::make_fleet(sim::world(MAPMERGE_DATA_DIR "/fr_079.bt"),
+                                         fleet_config(16, 3000u + static_cast<unsigned>(t % fleets)));
+    mg::PoseGraph g;
+    sim::load(g, f, 0);
+    auto t0 = Clock::now();
+    double c0 = thread_cpu_ms();
+    const mg::GraphSolution s = g.optimise({});
+    cold_cpu.push_back(thread_cpu_ms() - c0);
+    cold.push_back(std::chrono::duration<double, std::milli>(Clock::now() - t0).count());
+    consistency.push_back(s.summary.consistency_ms);
+    solve.push_back(s.summary.solve_ms);
+    covariance.push_back(s.summary.covariance_ms);
+    cold_iterations.push_back(s.summary.iterations);
+    edges += static_cast<double>(f.edges.size());
+    // Incremental: one edge re-aligned (its transform moves by 2 cm), warm start.
+    mg::Edge e = f.edges[static_cast<std::size_t>(t) % f.edges.size()].edge;
+    e.T_target_source.translation() += Eigen::Vector3d(0.02, -0.01, 0.0);
+    g.add_or_update_edge(e);
+    t0 = Clock::now();
+    c0 = thread_cpu_ms();
+    const mg::GraphSolution w = g.optimise({});
+    warm_cpu.push_back(thread_cpu_ms() - c0);
+    warm.push_back(std::chrono::duration<double, std::milli>(Clock::now() - t0).count());
+    warm_iterations.push_back(w.summary.iterations);
+  }
+  std::printf("## Cost of one optimisation, 16 robots (%d runs over %d fleets, %.1f edges on average)\n\n",
+              o.timing_runs, fleets, edges / o.timing_runs);
+  std::printf("| | median [ms] | p95 [ms] | max [ms] |\n|---|---|---|---|\n");
+  auto row = [](const char* name, const std::vector<double>& v) {
+    std::printf("| %s | %.2f | %.2f | %.2f |\n", name, percentile(v, 0.5), percentile(v, 0.95), maximum(v));
+  };
+  row("cold optimise(), CPU time", cold_cpu);
+  row("cold optimise(), wall time", cold);
+  row("  cold, of which (wall) cycle checks", consistency);
+  row("  cold, of which (wall) Ceres solve(s)", solve);
+  row("  cold, of which (wall) covariances", covariance);
+  row("warm optimise() after one edge changed, CPU time", warm_cpu);
+  row("warm optimise() after one edge changed, wall time", warm);
+  std::printf("\nLevenberg-Marquardt iterations: cold median %.0f, warm median %.0f.\n\n",
+              percentile(cold_iterations, 0.5), percentile(warm_iterations, 0.5));
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  const Options o = parse(argc, argv);
+  if (!o.timing_only) {
+    accuracy(o);
+    wrong_edge(o);
+  }
+  timing(o);
+  return 0;
+}
