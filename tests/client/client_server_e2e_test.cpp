@@ -1,0 +1,101 @@
+// The client library against the real mapmerge-server process: a Fast DDS robot started before
+// the server connects once it appears; a Cyclone DDS robot with zstd payloads is aligned
+// against it within tolerance of the ground truth; both receive the global map; a server
+// killed and restarted on the same state is survived and rejoined.
+
+#include <atomic>
+#include <thread>
+
+#include <gtest/gtest.h>
+#include <octomap/OcTree.h>
+
+#include "mapmerge/client/client.hpp"
+#include "mapmerge/map/map_io.hpp"
+#include "server_fixture.hpp"
+
+namespace mapmerge {
+namespace {
+
+using namespace std::chrono_literals;
+constexpr auto kAlignment = 150s;  ///< first alignment of two Freiburg strips on 2 busy cores
+constexpr auto kConnect = 30s;
+
+template <class Pred>
+bool eventually(Pred&& pred, std::chrono::milliseconds timeout) {
+  const auto deadline = std::chrono::steady_clock::now() + timeout;
+  while (std::chrono::steady_clock::now() < deadline) {
+    if (pred()) return true;
+    std::this_thread::sleep_for(50ms);
+  }
+  return pred();
+}
+
+bool aligned(const Client& c) {
+  const auto p = c.own_pose();
+  return p && p->status == client::PoseStatus::kAligned;
+}
+
+class ClientServerE2E : public test::ServerFixture {};
+
+TEST_F(ClientServerE2E, RobotsOfBothVendorsAreAlignedAndSurviveAServerRestart) {
+  client::Options o1;
+  o1.robot_id = "r1";
+  o1.domain = test::dds_domain();
+  Client r1(o1);  // Fast DDS, started before the server
+  EXPECT_FALSE(r1.wait_for_server(200ms));
+  const auto map1 = read_octree_file(map_path("r1"));
+  ASSERT_TRUE(r1.publish(*map1).queued);
+
+  start_server();
+  ASSERT_TRUE(r1.wait_for_server(kConnect)) << server_log();
+
+  client::Options o2 = o1;
+  o2.robot_id = "r2";
+  o2.zstd = true;
+  CycloneClient r2(o2);
+  const auto map2 = read_octree_file(map_path("r2"));
+  ASSERT_TRUE(r2.publish(*map2).queued);
+
+  ASSERT_TRUE(eventually([&] { return aligned(r1) && aligned(r2); }, kAlignment)) << server_log();
+  for (const char* robot : {"r1", "r2"}) {
+    const Client& c = std::string(robot) == "r1" ? static_cast<const Client&>(r1) : r2;
+    const auto pose = c.own_pose();
+    const auto error = test::pose_error(true_pose(robot), pose->matrix());
+    EXPECT_LT(error.rotation_deg, kMaxRotationErrorDeg) << robot;
+    EXPECT_LT(error.translation_m, kMaxTranslationErrorM) << robot;
+    EXPECT_EQ(pose->global_frame_id, "global");
+    EXPECT_EQ(pose->robot_frame_id, std::string(robot) + "/map");
+  }
+  // Each sees the other's pose, and the global map holding both robots.
+  EXPECT_TRUE(eventually([&] { return r1.pose("r2") && r2.pose("r1"); }, kConnect));
+  const std::uint64_t version = r2.own_pose()->global_version;
+  ASSERT_TRUE(eventually([&] {
+    const auto g = r1.global_map();
+    return g && g->version >= version && g->contributors.size() == 2;
+  }, kConnect)) << server_log();
+  const auto global = r1.global_map();
+  EXPECT_GT(global->tree->size(), map1->size());
+  ASSERT_TRUE(eventually([&] { return r2.global_map() && r2.global_map()->version >= version; }, kConnect));
+
+  // The server crashes: the robots notice, keep their poses, and keep publishing without blocking.
+  std::atomic<int> lost{0};
+  r2.on_server_connection([&](bool up) { lost += up ? 0 : 1; });
+  stop_server(SIGKILL);
+  ASSERT_TRUE(eventually([&] { return !r1.server_connected() && !r2.server_connected(); }, 60s))
+      << "a crashed server is noticed after the DDS lease duration";
+  EXPECT_TRUE(eventually([&] { return lost >= 1; }, 5s));
+  const auto start = std::chrono::steady_clock::now();
+  ASSERT_TRUE(r2.publish(*map2).queued);
+  EXPECT_LT(std::chrono::steady_clock::now() - start, 5s);
+  EXPECT_TRUE(aligned(r1) && aligned(r2));
+
+  // Restarted on the same state directory: both reconnect and get poses again.
+  const auto before = r2.statistics().poses_received;
+  start_server();
+  ASSERT_TRUE(r1.wait_for_server(kConnect) && r2.wait_for_server(kConnect)) << server_log();
+  ASSERT_TRUE(eventually([&] { return r2.statistics().poses_received > before && aligned(r2); }, kAlignment))
+      << server_log();
+}
+
+}  // namespace
+}  // namespace mapmerge
