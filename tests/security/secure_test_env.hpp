@@ -55,12 +55,15 @@ class SecureKeystores {
   std::string other_ca() const { return root_ + "/other_ca"; }
   std::string forged() const { return root_ + "/forged"; }
   std::string stolen() const { return root_ + "/stolen"; }
-
-  static wire::SecurityOptions identity(const std::string& keystore, const std::string& enclave) {
-    return wire::SecurityOptions{keystore, enclave};
+  /// A keystore for a Cyclone DDS server (make-keystore --server-vendor cyclone), made on first use.
+  std::string cyclone_server() {
+    const std::string dir = root_ + "/cyclone_server";
+    if (!fs::exists(dir)) make(dir, "--robots r1,r2 --server-vendor cyclone");
+    return dir;
   }
+  /// A fresh directory under this test's temporary root.
+  std::string scratch(const std::string& name) const { return root_ + "/" + name; }
 
- private:
   static void make(const std::string& dir, const std::string& args) {
     // MAPMERGE_MAKE_KEYSTORE in the environment: another script (e.g. a deliberately broken copy,
     // to see these tests fail).
@@ -70,6 +73,11 @@ class SecureKeystores {
     if (std::system(cmd.c_str()) != 0) throw std::runtime_error("failed: " + cmd);
   }
 
+  static wire::SecurityOptions identity(const std::string& keystore, const std::string& enclave) {
+    return wire::SecurityOptions{keystore, enclave};
+  }
+
+ private:
   /// Permissions for `subject` to publish the server's topics, signed by `keystore`'s CA.
   void forge_permissions(const std::string& p7s, const std::string& subject, const std::string& keystore) const {
     const std::string xml = root_ + "/forged-permissions.xml";

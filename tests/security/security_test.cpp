@@ -353,6 +353,63 @@ TEST_F(Security, FastddsServerGlobalMapReachesCycloneRobot) {
   EXPECT_EQ(received, global.data());
 }
 
+TEST_F(Security, CycloneServerWorksWithFastddsRobot) {
+  // make-keystore --server-vendor cyclone orders handshakes for a server on Cyclone DDS.
+  const std::string keystore = keys_->cyclone_server();
+  auto bytes = sample_map();
+  CycloneParticipant server(dds_domain(), wire::ProfileSpec{}, SecurityOptions{keystore, "mapmerge_server"});
+  const dds_entity_t reader =
+      server.create_reader(server.topic(&mapmerge_MapUpdate_desc, wire::map_topic("r1")), TopicKind::State);
+  FastddsParticipant robot(options("r1", SecurityOptions{keystore, "r1"}));
+  auto* writer = robot.create_writer(robot.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic("r1")),
+                                     TopicKind::State);
+  auto update = map_update("r1", "to-cyclone", bytes);
+  ASSERT_TRUE(writer->write(&update));
+  std::vector<uint8_t> received;
+  const bool got = eventually(
+      [&] {
+        void* samples[1] = {nullptr};
+        dds_sample_info_t info;
+        const dds_return_t n = dds_take(reader, samples, &info, 1, 1);
+        bool valid = false;
+        if (n > 0 && info.valid_data) {
+          const auto* u = static_cast<const mapmerge_MapUpdate*>(samples[0]);
+          received.assign(u->data._buffer, u->data._buffer + u->data._length);
+          valid = true;
+        }
+        if (n > 0) dds_return_loan(reader, samples, n);
+        return valid;
+      },
+      kDeliveryTimeout);
+  ASSERT_TRUE(got) << "the Fast DDS robot's map never reached the secured Cyclone server";
+  EXPECT_EQ(received, bytes);
+}
+
+// --- the keystore script ------------------------------------------------------------------------
+
+std::string file_bytes(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
+
+TEST_F(Security, KeystoreRerunKeepsIdentitiesAndAddsNames) {
+  const std::string dir = keys_->scratch("rerun");
+  SecureKeystores::make(dir, "--robots r1");
+  const char* kept[] = {"public/ca.cert.pem", "private/ca.key.pem", "enclaves/governance.p7s",
+                        "enclaves/r1/cert.pem", "enclaves/r1/key.pem", "enclaves/r1/permissions.p7s",
+                        "enclaves/mapmerge_server/cert.pem", "enclaves/mapmerge_server/permissions.p7s"};
+  std::vector<std::string> before;
+  for (const char* f : kept) before.push_back(file_bytes(dir + "/" + f));
+  SecureKeystores::make(dir, "--robots r1,r3");
+  for (size_t i = 0; i < std::size(kept); ++i) {
+    EXPECT_FALSE(before[i].empty()) << kept[i];
+    EXPECT_EQ(file_bytes(dir + "/" + kept[i]), before[i]) << kept[i] << " changed on a re-run";
+  }
+  EXPECT_NO_THROW((void)SecurityOptions({dir, "r3"}).files()) << "r3 was not added";
+  EXPECT_NE(file_bytes(dir + "/enclaves/r3/permissions.xml").find("rt/r3/mapmerge/map"), std::string::npos);
+  EXPECT_EQ(file_bytes(dir + "/enclaves/r3/permissions.xml").find("rt/r1/"), std::string::npos);
+}
+
 // --- map payloads are encrypted on the wire ---------------------------------------------------
 
 /// Captures every packet on the loopback interface (needs CAP_NET_RAW) and remembers whether
