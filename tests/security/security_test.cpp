@@ -385,6 +385,19 @@ TEST_F(Security, CycloneServerWorksWithFastddsRobot) {
   EXPECT_EQ(received, bytes);
 }
 
+TEST(SecurityOptions, FromRos2Environment) {
+  ::unsetenv("ROS_SECURITY_ENABLE");
+  ::setenv("ROS_SECURITY_KEYSTORE", "/keys", 1);
+  EXPECT_FALSE(SecurityOptions::from_environment("r1").enabled()) << "ROS_SECURITY_ENABLE unset must mean off";
+  ::setenv("ROS_SECURITY_ENABLE", "true", 1);
+  auto s = SecurityOptions::from_environment("r1");
+  EXPECT_EQ(s.keystore, "/keys");
+  EXPECT_EQ(s.enclave, "r1");
+  ::setenv("ROS_SECURITY_ENCLAVE", "/r2", 1);
+  EXPECT_EQ(SecurityOptions::from_environment("r1").enclave, "r2");
+  for (const char* v : {"ROS_SECURITY_ENABLE", "ROS_SECURITY_KEYSTORE", "ROS_SECURITY_ENCLAVE"}) ::unsetenv(v);
+}
+
 // --- the keystore script ------------------------------------------------------------------------
 
 std::string file_bytes(const std::string& path) {
