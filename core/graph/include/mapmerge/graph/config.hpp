@@ -30,7 +30,9 @@ enum class RobustLoss { kNone, kHuber, kCauchy };
 /// Stage 3: joint optimisation of every T_global_robot (Ceres), then residual rejection.
 struct SolverConfig {
   RobustLoss loss = RobustLoss::kCauchy;  ///< robust loss on each edge's whitened residual
-  double loss_scale = 3.0;        ///< where the loss turns robust [whitened residual norm, i.e. sigmas]
+  double loss_scale = 6.0;        ///< where the loss turns robust [whitened residual norm, i.e. sigmas];
+                                  ///< generous: the information model is a proxy and real alignment
+                                  ///< errors run above its sigmas (outliers are the cycle checks' job)
   int max_iterations = 50;        ///< Levenberg-Marquardt iterations [count]
   double function_tolerance = 1e-10;  ///< relative cost change that ends the solve [ratio]
   int max_rejection_rounds = 3;   ///< re-solves after rejecting an edge whose residual exceeds
@@ -38,7 +40,7 @@ struct SolverConfig {
   bool warm_start = true;         ///< start from the last solution where it agrees with the tree
   double warm_start_max_rotation_deg = 5.0;  ///< a last pose further than this from the tree's is not reused [deg]
   double warm_start_max_translation = 0.5;   ///< ... or further than this [m]
-  bool compute_covariance = true;  ///< marginal covariances by ceres::Covariance (else propagated along the tree)
+  bool compute_covariance = true;  ///< marginal covariances (J^T J)^-1 at the solution (else propagated along the tree)
 };
 
 /// Stage 4: quality figure of a pose, in [0, 1]:

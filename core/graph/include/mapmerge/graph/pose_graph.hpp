@@ -86,7 +86,7 @@ struct SolverSummary {
   int rejection_rounds = 0;     ///< re-solves after residual rejection [count]
   double initial_cost = 0.0;    ///< first round [0.5 * sum of robustified squared whitened residuals]
   double final_cost = 0.0;      ///< last round
-  bool covariance_from_solver = false;  ///< ceres::Covariance succeeded (else tree propagation)
+  bool covariance_from_solver = false;  ///< marginals of the solved problem (else propagated along the tree)
   double consistency_ms = 0.0;  ///< cycle checks [ms]
   double solve_ms = 0.0;        ///< Ceres solves [ms]
   double covariance_ms = 0.0;   ///< [ms]
