@@ -166,7 +166,10 @@ FuseResult fuse_into(octomap::OcTree& target, const octomap::OcTree& source,
   result.reason = check_rigid(T_target_source, config.rigid_tolerance);
   if (!result.reason.empty()) return result;
   const double res = target.getResolution();
-  if (provenance != nullptr) provenance->resolution = res;
+  if (provenance != nullptr) {
+    provenance->resolution = res;
+    provenance->owner.reserve(provenance->owner.size() + source.getNumLeafNodes() / 2);
+  }
   detail::TreeWriter writer(target);
   LeafMapper mapper(T_target_source, res, writer, provenance, robot, result);
   KeyVotes fine_votes;

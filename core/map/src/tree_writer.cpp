@@ -40,15 +40,15 @@ octomap::OcTreeNode* TreeWriter::descend(const octomap::OcTreeKey& key, unsigned
     fresh = true;
   }
   path_[0] = root;
-  unsigned d = 0;
-  while (d < depth && d < path_depth_ &&
-         octomap::computeChildIdx(key, static_cast<int>(kTreeDepth - 1 - d)) ==
-             octomap::computeChildIdx(path_key_, static_cast<int>(kTreeDepth - 1 - d))) {
-    ++d;
-  }
+  // The cached path is shared down to the level of the highest bit where the keys differ.
+  const unsigned diff = static_cast<unsigned>((key[0] ^ path_key_[0]) | (key[1] ^ path_key_[1]) |
+                                              (key[2] ^ path_key_[2]));
+  unsigned shared = kTreeDepth;
+  for (unsigned bits = diff; bits != 0; bits >>= 1) --shared;
+  const unsigned d = std::min({shared, depth, path_depth_});
   octomap::OcTreeNode* node = path_[d];
-  for (; d < depth; ++d) {
-    const unsigned pos = octomap::computeChildIdx(key, static_cast<int>(kTreeDepth - 1 - d));
+  for (unsigned level = d; level < depth; ++level) {
+    const unsigned pos = octomap::computeChildIdx(key, static_cast<int>(kTreeDepth - 1 - level));
     if (tree_.nodeChildExists(node, pos)) {
       node = tree_.getNodeChild(node, pos);
     } else if (!fresh && !tree_.nodeHasChildren(node)) {
@@ -58,7 +58,7 @@ octomap::OcTreeNode* TreeWriter::descend(const octomap::OcTreeKey& key, unsigned
       node = tree_.createNodeChild(node, pos);  // unknown space: log-odds 0
       fresh = true;
     }
-    path_[d + 1] = node;
+    path_[level + 1] = node;
   }
   path_key_ = key;
   path_depth_ = depth;

@@ -25,7 +25,8 @@ namespace mapmerge {
 /// Settings of fuse_into().
 struct FuseConfig {
   bool fuse_free = true;             ///< also add the (negative) evidence of free leaves
-  bool prune = true;                 ///< update inner nodes and prune the target when done
+  bool prune = true;                 ///< prune the target when done (inner nodes are always
+                                     ///< updated; skip pruning when fusing several maps in a row)
   double rigid_tolerance = 1e-6;     ///< max |R^T R - I| entry accepted as a rotation [-]
 };
 
