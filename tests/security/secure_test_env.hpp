@@ -77,7 +77,6 @@ class SecureKeystores {
     return wire::SecurityOptions{keystore, enclave};
   }
 
- private:
   /// Permissions for `subject` to publish the server's topics, signed by `keystore`'s CA.
   void forge_permissions(const std::string& p7s, const std::string& subject, const std::string& keystore) const {
     const std::string xml = root_ + "/forged-permissions.xml";
@@ -94,7 +93,7 @@ class SecureKeystores {
     if (std::system(cmd.c_str()) != 0) throw std::runtime_error("failed: " + cmd);
   }
 
-  /// keystore `dir` gets enclave `name` made of `base`'s files, with `replaced` taken from `donor`.
+  /// Keystore `dir` gets enclave `name` made of `base`'s files, with `replaced` taken from `donor`.
   static void splice(const std::string& dir, const std::string& name, const std::string& base,
                      const std::string& donor, std::initializer_list<const char*> replaced) {
     const fs::path out = fs::path(dir) / "enclaves" / name;
@@ -108,6 +107,7 @@ class SecureKeystores {
     }
   }
 
+ private:
   std::string root_;
 };
 

@@ -288,6 +288,45 @@ TEST_F(Security, ForgedPermissionsAreRefusedByPeers) {
   EXPECT_EQ(matched(forged_writer), 0) << "peers matched the forged writer";
 }
 
+TEST_F(Security, RevokedRobotIsRefused) {
+  // r2 is stolen (the thief keeps a copy of its enclave), then revoked with make-keystore.
+  const std::string dir = keys_->scratch("revocation");
+  const std::string thief = keys_->scratch("thief");
+  SecureKeystores::make(dir, "--robots r1,r2");
+  SecureKeystores::splice(thief, "r2", dir, dir, {});
+  SecureKeystores::make(dir, "--robots r1 --revoke r2");
+  ASSERT_FALSE(fs::exists(dir + "/enclaves/r2")) << "the revoked enclave is still in the keystore";
+
+  FastddsParticipant server(options("server", SecurityOptions{dir, "mapmerge_server"}));
+  auto* r1_reader = server.create_reader(server.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic("r1")),
+                                         TopicKind::State);
+  auto* r2_reader = server.create_reader(server.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic("r2")),
+                                         TopicKind::State);
+  FastddsParticipant stolen(options("stolen-r2", SecurityOptions{thief, "r2"}));
+  auto* stolen_writer = stolen.create_writer(stolen.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic("r2")),
+                                             TopicKind::State);
+  auto fake = map_update("r2", "stolen", {6, 6, 6});
+  ASSERT_TRUE(stolen_writer->write(&fake));
+  FastddsParticipant robot(options("r1", SecurityOptions{dir, "r1"}));
+  auto* writer = robot.create_writer(robot.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic("r1")),
+                                     TopicKind::State);
+  auto real = map_update("r1", "real", {1, 2, 3});
+  ASSERT_TRUE(writer->write(&real));
+
+  mapmerge::MapUpdate got;
+  ASSERT_TRUE(fast_take_one(r1_reader, got)) << "control: r1 (not revoked) never reached the server";
+  std::vector<mapmerge::MapUpdate> from_r2;
+  eventually(
+      [&] {
+        for (auto& x : fast_take_all<mapmerge::MapUpdate>(r2_reader)) from_r2.push_back(x);
+        return false;
+      },
+      kQuietPeriod);
+  EXPECT_TRUE(from_r2.empty()) << "the revoked robot's map reached the server";
+  EXPECT_EQ(matched(r2_reader), 0);
+  EXPECT_EQ(matched(stolen_writer), 0) << "the revoked robot was matched";
+}
+
 // --- a secured Cyclone DDS robot interoperates with the secured Fast DDS server -------------
 
 TEST_F(Security, CycloneRobotMapReachesFastddsServerByteIdentical) {

@@ -109,6 +109,7 @@ dds_qos_t* security_qos(const SecurityOptions& security) {
       {"dds.sec.crypto.library.finalize", "finalize_crypto"},
   };
   for (const auto& [name, value] : props) dds_qset_prop(qos, name, value.c_str());
+  if (!files.crl.empty()) dds_qset_prop(qos, "org.eclipse.cyclonedds.sec.auth.crl", ("file:" + files.crl).c_str());
   return qos;
 }
 

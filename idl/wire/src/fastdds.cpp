@@ -99,6 +99,7 @@ void use_security(dds::DomainParticipantQos& qos, const SecurityOptions& securit
   set("dds.sec.auth.builtin.PKI-DH.identity_ca", "file://" + files.identity_ca);
   set("dds.sec.auth.builtin.PKI-DH.identity_certificate", "file://" + files.certificate);
   set("dds.sec.auth.builtin.PKI-DH.private_key", "file://" + files.private_key);
+  if (!files.crl.empty()) set("dds.sec.auth.builtin.PKI-DH.identity_crl", "file://" + files.crl);
   set("dds.sec.access.plugin", "builtin.Access-Permissions");
   set("dds.sec.access.builtin.Access-Permissions.permissions_ca", "file://" + files.permissions_ca);
   set("dds.sec.access.builtin.Access-Permissions.governance", "file://" + files.governance);

@@ -38,6 +38,7 @@ SecurityFiles SecurityOptions::files() const {
   f.permissions_ca = existing_file(dir, "permissions_ca.cert.pem");
   f.governance = existing_file(dir, "governance.p7s");
   f.permissions = existing_file(dir, "permissions.p7s");
+  if (std::ifstream(dir / "crl.pem")) f.crl = (dir / "crl.pem").string();  // older keystores have none
   return f;
 }
 

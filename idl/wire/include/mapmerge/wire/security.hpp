@@ -14,6 +14,7 @@ struct SecurityFiles {
   std::string permissions_ca;  ///< permissions_ca.cert.pem: CA that signs governance and permissions
   std::string governance;      ///< governance.p7s: signed domain rules
   std::string permissions;     ///< permissions.p7s: signed grants of this participant
+  std::string crl;             ///< crl.pem: revoked certificates (make-keystore --revoke); empty: none
 };
 
 struct SecurityOptions {
