@@ -247,6 +247,20 @@ TEST_F(Security, RobotCannotWriteAnotherRobotsTopicCyclone) {
       << "r1 wrote the global map";
 }
 
+TEST_F(Security, Ros2OptionGrantsOnlyTheRobotsOwnNamespace) {
+  const std::string dir = keys_->scratch("ros2");
+  SecureKeystores::make(dir, "--robots r1,r2 --ros2");
+  FastddsParticipant robot(options("r1", SecurityOptions{dir, "r1"}));
+  auto writer_on = [&](const std::string& topic) {
+    return robot.create_writer(robot.topic<mapmerge::MapUpdatePubSubType>(topic), TopicKind::Event);
+  };
+  EXPECT_NO_THROW(writer_on("ros_discovery_info"));
+  EXPECT_NO_THROW(writer_on("rt/r1/cloud_in"));
+  EXPECT_NO_THROW(writer_on("rr/r1/octomap_server/get_parametersReply"));
+  EXPECT_THROW(writer_on("rt/r2/cloud_in"), wire::DdsError) << "r1 wrote in r2's namespace";
+  EXPECT_THROW(writer_on("rt/mapmerge/global"), wire::DdsError) << "r1 wrote the global map";
+}
+
 TEST_F(Security, StolenPermissionsDoNotFitAnotherIdentity) {
   // r1's key with r2's genuine permissions: the subject differs, the participant is refused.
   EXPECT_THROW(FastddsParticipant(options("stolen", SecurityOptions{keys_->stolen(), "r1"})), wire::DdsError);
