@@ -91,3 +91,15 @@ TEST(GraphInformation, UnusableInputsAreAValueNotAnException) {
   bad.lever_arm = 0.0;
   EXPECT_FALSE(mg::information_from_alignment(good(), bad).valid);
 }
+
+TEST(GraphInformation, OverlapPivotIsTheCentreOfTheSharedBox) {
+  const Eigen::AlignedBox3d source(Eigen::Vector3d(0, 0, 0), Eigen::Vector3d(10, 4, 2));
+  const Eigen::AlignedBox3d target(Eigen::Vector3d(0, 0, 0), Eigen::Vector3d(10, 4, 2));
+  Eigen::Isometry3d T_target_source = Eigen::Isometry3d::Identity();
+  T_target_source.translation() = Eigen::Vector3d(-6, 0, 0);  // source x = 6 is target x = 0
+  const Eigen::Vector3d pivot = mg::overlap_pivot(source, target, T_target_source);
+  // The target covers source x in [6, 16]: shared x in [6, 10].
+  EXPECT_TRUE(pivot.isApprox(Eigen::Vector3d(8, 2, 1))) << pivot.transpose();
+  T_target_source.translation() = Eigen::Vector3d(-50, 0, 0);
+  EXPECT_TRUE(mg::overlap_pivot(source, target, T_target_source).isApprox(source.center()));
+}

@@ -61,4 +61,17 @@ EdgeInformation information_from_alignment(const AlignmentQuality& quality,
   return out;
 }
 
+Eigen::Vector3d overlap_pivot(const Eigen::AlignedBox3d& source_box,
+                              const Eigen::AlignedBox3d& target_box,
+                              const Eigen::Isometry3d& T_target_source) {
+  if (source_box.isEmpty()) return Eigen::Vector3d::Zero();
+  if (target_box.isEmpty()) return source_box.center();
+  const Eigen::Isometry3d T_source_target = T_target_source.inverse();
+  Eigen::AlignedBox3d target_in_source;
+  for (int corner = 0; corner < 8; ++corner)
+    target_in_source.extend(T_source_target * target_box.corner(static_cast<Eigen::AlignedBox3d::CornerType>(corner)));
+  const Eigen::AlignedBox3d shared = source_box.intersection(target_in_source);
+  return shared.isEmpty() ? source_box.center() : shared.center();
+}
+
 }  // namespace mapmerge::graph

@@ -20,6 +20,7 @@
 #include <string>
 
 #include <Eigen/Core>
+#include <Eigen/Geometry>
 
 namespace mapmerge::graph {
 
@@ -60,5 +61,13 @@ EdgeInformation information_from_alignment(const AlignmentQuality& quality,
 /// information_from_alignment; handy in tests and simulations. Requires sigmas > 0.
 Matrix6d information_at_pivot(double sigma_translation, double sigma_rotation,
                               const Eigen::Vector3d& pivot_source);
+
+/// A pivot for AlignmentQuality when the aligner does not report the inliers' centroid: the
+/// centre of the overlap of the two maps' bounding boxes, in the source frame (the target's box
+/// moved into the source frame by T_target_source^-1, as an axis-aligned box). Falls back to the
+/// centre of the source box when the boxes do not overlap or a box is empty.
+Eigen::Vector3d overlap_pivot(const Eigen::AlignedBox3d& source_box,
+                              const Eigen::AlignedBox3d& target_box,
+                              const Eigen::Isometry3d& T_target_source);
 
 }  // namespace mapmerge::graph
