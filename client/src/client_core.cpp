@@ -35,6 +35,7 @@ TransportConfig transport_config(const Options& options) {
   c.profile.discovery_server = options.discovery_server;
   c.robot_id = options.robot_id;
   c.receive_global_map = options.receive_global_map;
+  c.max_block = options.max_block;
   c.participant_name = "mapmerge-client/" + (options.robot_id.empty() ? std::string("observer") : options.robot_id);
   return c;
 }

@@ -84,10 +84,11 @@ class CycloneTransport final : public Transport {
       : events_(std::move(events)), participant_(config.domain, config.profile) {
     auto& p = participant_;
     if (!config.robot_id.empty()) {
-      map_writer_ = p.create_writer(p.topic(&mapmerge_MapUpdate_desc, wire::map_topic(config.robot_id)),
-                                    wire::TopicKind::State);
+      map_writer_ = create_writer(p.topic(&mapmerge_MapUpdate_desc, wire::map_topic(config.robot_id)),
+                                  wire::TopicKind::State, config.max_block);
     }
-    request_writer_ = p.create_writer(p.topic(&mapmerge_MapRequest_desc, wire::kRequestTopic), wire::TopicKind::Event);
+    request_writer_ = create_writer(p.topic(&mapmerge_MapRequest_desc, wire::kRequestTopic), wire::TopicKind::Event,
+                                    config.max_block);
     pose_reader_ = p.create_reader(p.topic(&mapmerge_RobotPose_desc, wire::kPosesTopic), wire::TopicKind::State);
     if (config.receive_global_map) {
       map_reader_ = p.create_reader(p.topic(&mapmerge_GlobalMap_desc, wire::kGlobalMapTopic), wire::TopicKind::State);
@@ -143,6 +144,16 @@ class CycloneTransport final : public Transport {
   }
 
  private:
+  /// A writer of the topic kind's QoS whose writes block at most `max_block`.
+  dds_entity_t create_writer(dds_entity_t topic, wire::TopicKind kind, std::chrono::milliseconds max_block) {
+    dds_qos_t* qos = wire::make_cyclone_qos(kind);
+    dds_qset_reliability(qos, DDS_RELIABILITY_RELIABLE, DDS_MSECS(max_block.count()));
+    const dds_entity_t w = dds_create_writer(participant_.participant(), topic, qos, nullptr);
+    dds_delete_qos(qos);
+    if (w < 0) throw wire::CycloneError(std::string("cannot create Cyclone writer: ") + dds_strretcode(w));
+    return w;
+  }
+
   void attach(dds_entity_t reader) {
     if (reader <= 0) return;
     const dds_entity_t condition = dds_create_readcondition(reader, DDS_ANY_STATE);

@@ -34,6 +34,15 @@ PoseStatus to_status(mapmerge::PoseStatus status) {
   }
 }
 
+/// Bounds how long a write may block the thread calling it (reliable history full).
+void limit_blocking(fdds::DataWriter* writer, std::chrono::milliseconds max_block) {
+  fdds::DataWriterQos qos = writer->get_qos();
+  qos.reliability().max_blocking_time = to_duration(max_block);
+  if (writer->set_qos(qos) != ReturnCode_t::RETCODE_OK) {
+    throw wire::DdsError("cannot set the max blocking time of writer on " + writer->get_topic()->get_name());
+  }
+}
+
 Pose to_pose(const mapmerge::RobotPose& s) {
   Pose p;
   p.robot_id = s.robot_id();
@@ -96,9 +105,11 @@ class FastddsTransport final : public Transport {
     if (!config.robot_id.empty()) {
       map_writer_ = p.create_writer(p.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic(config.robot_id)),
                                     wire::TopicKind::State);
+      limit_blocking(map_writer_, config.max_block);
     }
     request_writer_ = p.create_writer(p.topic<mapmerge::MapRequestPubSubType>(wire::kRequestTopic),
                                       wire::TopicKind::Event);
+    limit_blocking(request_writer_, config.max_block);
     pose_reader_ = p.create_reader(p.topic<mapmerge::RobotPosePubSubType>(wire::kPosesTopic),
                                    wire::TopicKind::State, &pose_listener_);
     if (config.receive_global_map) {

@@ -44,6 +44,7 @@ struct TransportConfig {
   std::string robot_id;           ///< empty: no map writer
   bool receive_global_map = true;
   std::string participant_name;
+  std::chrono::milliseconds max_block{200};  ///< max blocking time of our writers
 };
 
 /// Called on DDS threads: must only hand the data over, never block.

@@ -12,8 +12,9 @@
 ///
 /// Threading: every method may be called from any thread. Callbacks run on one thread owned by
 /// the client, one at a time, never on a DDS thread; a slow callback delays later callbacks of
-/// this client only. No method waits on the network longer than Options::max_block, except
-/// wait_for_server() and flush(), which wait at most the time they are given.
+/// this client only. Only wait_for_server() and flush() wait on the network, at most the time
+/// they are given; publish() hands its update to a sending thread whose DDS writes block at
+/// most Options::max_block (the destructor waits for at most one such write).
 
 #include <array>
 #include <chrono>
@@ -96,7 +97,8 @@ struct Options {
   std::string session_id;       ///< empty: this process's random session id (new per start)
   bool zstd = false;            ///< compress map updates ("octomap-bt+zstd") instead of "octomap-bt"
   int zstd_level = 3;           ///< zstd level when compressing (1 fast .. 19 small)
-  std::chrono::milliseconds max_block{200};  ///< longest a call waits on the network [ms]
+  std::chrono::milliseconds max_block{200};  ///< longest one DDS write may block the client's
+                                             ///< sending thread, which also bounds the destructor [ms]
   bool receive_global_map = true;   ///< subscribe to the (large) global map
   std::size_t max_global_map_bytes = 100'000'000;  ///< larger global maps are rejected [bytes]
   std::chrono::milliseconds poll_period{100};      ///< server-presence check period [ms]
