@@ -1,8 +1,9 @@
-// DDS Security with real participants on loopback (the `local` profile): authenticated robots
-// reach the server byte for byte; strangers, forged permissions and robots writing on another
-// robot's topic are refused; a secured Cyclone DDS robot interoperates with the secured
-// Fast DDS server. Negative checks always run next to a positive control on the same topic,
-// so "nothing arrived" cannot pass just because discovery had not finished.
+// DDS Security with real participants on loopback (the `local` profile) and keystores made by
+// scripts/make-keystore: authenticated robots reach the server byte for byte; strangers,
+// forged or stolen permissions, revoked robots and robots writing on another robot's topic are
+// refused; secured Cyclone DDS and Fast DDS participants interoperate both ways; map bytes
+// never cross loopback in clear text. Negative checks always run next to a positive control on
+// the same topic, so "nothing arrived" cannot pass just because discovery had not finished.
 
 #include <algorithm>
 #include <atomic>
@@ -490,7 +491,9 @@ class LoopbackSniffer {
     addr.sll_protocol = htons(ETH_P_ALL);
     addr.sll_ifindex = static_cast<int>(if_nametoindex("lo"));
     timeval tv{0, 100000};
+    const int buffer = 8 << 20;  // hold a whole map's burst (the kernel caps it at rmem_max)
     ::setsockopt(fd_, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
+    ::setsockopt(fd_, SOL_SOCKET, SO_RCVBUF, &buffer, sizeof buffer);
     if (addr.sll_ifindex == 0 || ::bind(fd_, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) {
       ::close(fd_);
       fd_ = -1;
@@ -499,19 +502,26 @@ class LoopbackSniffer {
     thread_ = std::thread([this] { run(); });
   }
   ~LoopbackSniffer() {
-    stop_ = true;
-    if (thread_.joinable()) thread_.join();
+    finish();
     if (fd_ >= 0) ::close(fd_);
   }
   bool ok() const { return fd_ >= 0; }
+  /// Processes the packets already captured (until the queue is empty, or for at most 2 s when
+  /// other tests keep loopback busy), then stops.
+  void finish() {
+    stop_deadline_ = std::chrono::steady_clock::now() + 2s;
+    stop_ = true;
+    if (thread_.joinable()) thread_.join();
+  }
   bool seen() const { return seen_; }
   size_t bytes() const { return bytes_; }
 
  private:
   void run() {
     std::vector<uint8_t> buf(1 << 16);
-    while (!stop_) {
+    for (;;) {
       const ssize_t n = ::recv(fd_, buf.data(), buf.size(), 0);
+      if (stop_ && (n <= 0 || std::chrono::steady_clock::now() > stop_deadline_)) return;
       if (n <= 0) continue;
       bytes_ += static_cast<size_t>(n);
       if (std::search(buf.begin(), buf.begin() + n, marker_.begin(), marker_.end()) != buf.begin() + n) seen_ = true;
@@ -519,6 +529,7 @@ class LoopbackSniffer {
   }
   std::vector<uint8_t> marker_;
   int fd_ = -1;
+  std::chrono::steady_clock::time_point stop_deadline_;  ///< written before stop_ is set
   std::atomic<bool> stop_{false};
   std::atomic<bool> seen_{false};
   std::atomic<size_t> bytes_{0};
@@ -573,12 +584,12 @@ TEST_F(Security, MapPayloadIsEncryptedOnTheWire) {
     if (!sniffer.ok()) GTEST_SKIP() << "no CAP_NET_RAW: cannot capture loopback packets";
     // Control: without security the marker is visible, so the capture works.
     ASSERT_TRUE(cyclone_to_fastdds(false, payload, keys_->trusted())) << "control: plain map not delivered";
-    std::this_thread::sleep_for(200ms);  // let the capture thread drain its queue
+    sniffer.finish();
     ASSERT_TRUE(sniffer.seen()) << "control: the capture never saw the plain payload";
   }
   LoopbackSniffer sniffer(marker);
   ASSERT_TRUE(cyclone_to_fastdds(true, payload, keys_->trusted())) << "secured map not delivered";
-  std::this_thread::sleep_for(200ms);
+  sniffer.finish();
   EXPECT_GE(sniffer.bytes(), payload.size()) << "the secured map did not cross loopback at all";
   EXPECT_FALSE(sniffer.seen()) << "map bytes crossed the network in clear text";
 }
