@@ -12,6 +12,35 @@ Eigen::Isometry3d make_transform(double x, double y, double z, double roll, doub
   return T;
 }
 
+namespace {
+
+/// Sets every output cell whose centre maps back (T_in_out) into the input voxel `key_in`:
+/// nearest-cell resampling, so a rotated map has neither holes nor thickened surfaces.
+void resample_voxel(const octomap::OcTree& in, octomap::OcTree& out, const octomap::OcTreeKey& key_in,
+                    const Eigen::Vector3d& p_in, const Eigen::Isometry3d& T_out_in,
+                    const Eigen::Isometry3d& T_in_out, float value) {
+  const Eigen::Vector3d q = T_out_in * p_in;
+  octomap::OcTreeKey centre;
+  if (!out.coordToKeyChecked(q.x(), q.y(), q.z(), centre)) return;
+  for (int dx = -1; dx <= 1; ++dx) {
+    for (int dy = -1; dy <= 1; ++dy) {
+      for (int dz = -1; dz <= 1; ++dz) {
+        const octomap::OcTreeKey k(static_cast<octomap::key_type>(centre[0] + dx),
+                                   static_cast<octomap::key_type>(centre[1] + dy),
+                                   static_cast<octomap::key_type>(centre[2] + dz));
+        const octomap::point3d c = out.keyToCoord(k);
+        const Eigen::Vector3d back = T_in_out * Eigen::Vector3d(c.x(), c.y(), c.z());
+        octomap::OcTreeKey key_back;
+        if (in.coordToKeyChecked(back.x(), back.y(), back.z(), key_back) && key_back == key_in) {
+          out.setNodeValue(k, value, /*lazy_eval=*/true);
+        }
+      }
+    }
+  }
+}
+
+}  // namespace
+
 std::unique_ptr<octomap::OcTree> crop_and_transform(const octomap::OcTree& tree,
                                                     const Eigen::AlignedBox3d& box,
                                                     const Eigen::Isometry3d& T_out_in) {
@@ -20,6 +49,7 @@ std::unique_ptr<octomap::OcTree> crop_and_transform(const octomap::OcTree& tree,
   out->setClampingThresMin(tree.getClampingThresMin());
   out->setClampingThresMax(tree.getClampingThresMax());
   out->setOccupancyThres(tree.getOccupancyThres());
+  const Eigen::Isometry3d T_in_out = T_out_in.inverse();
   const octomap::point3d bmin(static_cast<float>(box.min().x()), static_cast<float>(box.min().y()),
                               static_cast<float>(box.min().z()));
   const octomap::point3d bmax(static_cast<float>(box.max().x()), static_cast<float>(box.max().y()),
@@ -35,9 +65,8 @@ std::unique_ptr<octomap::OcTree> crop_and_transform(const octomap::OcTree& tree,
         for (int k = 0; k < cells; ++k) {
           const Eigen::Vector3d p(c.x() + first + i * res, c.y() + first + j * res, c.z() + first + k * res);
           if (!box.contains(p)) continue;
-          const Eigen::Vector3d q = T_out_in * p;
-          out->setNodeValue(static_cast<float>(q.x()), static_cast<float>(q.y()), static_cast<float>(q.z()),
-                            value, /*lazy_eval=*/true);
+          const octomap::OcTreeKey key_in = tree.coordToKey(p.x(), p.y(), p.z());
+          resample_voxel(tree, *out, key_in, p, T_out_in, T_in_out, value);
         }
       }
     }
