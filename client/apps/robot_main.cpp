@@ -4,6 +4,7 @@
 #include <iostream>
 #include <memory>
 #include <mutex>
+#include <optional>
 
 #include <octomap/OcTree.h>
 
@@ -30,6 +31,12 @@ struct RobotConfig {
 
 constexpr milliseconds kFlushTimeout{2000};  ///< waiting for acks of the last update on exit
 
+/// A pose worth printing again: another status, global version or transform.
+bool changed(const client::Pose& a, const client::Pose& b) {
+  return a.status != b.status || a.global_version != b.global_version || a.translation != b.translation ||
+         a.rotation != b.rotation;
+}
+
 int run(const RobotConfig& config) {
   std::unique_ptr<octomap::OcTree> tree;
   try {
@@ -51,8 +58,11 @@ int run(const RobotConfig& config) {
            ", profile " + config.dds.profile + ", session " + robot->session_id() + ", map " + config.map_file +
            " (" + std::to_string(tree->size()) + " nodes, " + std::to_string(tree->getResolution()) + " m)");
   std::atomic<bool> aligned{false};
+  std::optional<client::Pose> last_printed;  // callback thread only
   robot->on_own_pose([&](const client::Pose& pose) {
     if (pose.status == client::PoseStatus::kAligned) aligned = true;
+    if (last_printed && !changed(*last_printed, pose)) return;  // the server republishes periodically
+    last_printed = pose;
     cli::out(config.json ? cli::pose_json(pose).dump() : config.id + ": pose " + cli::pose_text(pose));
   });
   robot->on_server_connection([&](bool connected) {
@@ -100,7 +110,7 @@ int run(const RobotConfig& config) {
 int main(int argc, char** argv) {
   RobotConfig config;
   CLI::App app("mapmerge-robot: act as a robot publishing its OctoMap to the mapmerge server; prints its pose in "
-               "the global frame whenever the server publishes it.\n"
+               "the global frame whenever the server publishes a new one.\n"
                "Exit codes: 0 done or stopped (SIGINT/SIGTERM), 1 DDS failure, 2 bad flags or unreadable map, "
                "3 --timeout reached before alignment (with --exit-when-aligned).",
                "mapmerge-robot");

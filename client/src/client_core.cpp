@@ -1,28 +1,15 @@
 #include "client_core.hpp"
 
-#include <random>
-#include <sstream>
+#include <utility>
 
 #include <unistd.h>
 
-#include "mapmerge/map/map_codec.hpp"
-#include "mapmerge/map/map_io.hpp"
 #include "mapmerge/wire/topics.hpp"
 
 namespace mapmerge::client::detail {
 namespace {
 
 constexpr std::size_t kMaxPoseInbox = 4096;  ///< poses queued for callbacks; oldest dropped beyond
-
-std::string random_hex(int digits) {
-  std::random_device rd;
-  std::mt19937_64 rng((std::uint64_t(rd()) << 32) ^ rd() ^
-                      std::uint64_t(std::chrono::steady_clock::now().time_since_epoch().count()));
-  std::ostringstream ss;
-  ss << std::hex;
-  for (int i = 0; i < digits; ++i) ss << (rng() & 0xF);
-  return ss.str();
-}
 
 TransportConfig transport_config(const Options& options) {
   TransportConfig c;
@@ -55,52 +42,6 @@ void invoke(const std::optional<Callback>& slot, Args&&... args) {
 }
 
 }  // namespace
-
-const std::string& process_session_id() {
-  static const std::string id = random_hex(16);
-  return id;
-}
-
-MapMessage make_map_message(const octomap::OcTree& tree, const Options& options,
-                            const std::string& session_id, std::uint64_t sequence_number) {
-  const Encoding encoding = options.zstd ? Encoding::kOctomapBtZstd : Encoding::kOctomapBt;
-  EncodeOptions encode_options;
-  encode_options.zstd_level = options.zstd_level;
-  MapMessage m;
-  m.data = encode_map(tree, encoding, encode_options);
-  m.encoding = to_string(encoding);
-  m.robot_id = options.robot_id;
-  m.session_id = session_id;
-  m.sequence_number = sequence_number;
-  const auto now = std::chrono::system_clock::now().time_since_epoch();
-  const auto ns = std::chrono::duration_cast<std::chrono::nanoseconds>(now).count();
-  m.stamp_sec = static_cast<std::int32_t>(ns / 1000000000);
-  m.stamp_nanosec = static_cast<std::uint32_t>(ns % 1000000000);
-  m.frame_id = options.frame_id;
-  m.resolution = tree.getResolution();
-  return m;
-}
-
-std::shared_ptr<const GlobalMap> decode_global_map(GlobalMapMessage&& message, std::size_t max_bytes,
-                                                   std::string& error) {
-  DecodeLimits limits;
-  limits.max_bytes = max_bytes;
-  DecodeResult decoded = decode_map(message.data, message.encoding, limits);
-  if (!decoded.ok()) {
-    error = "global map version " + std::to_string(message.version) + " rejected: " + decoded.reason;
-    return nullptr;
-  }
-  auto map = std::make_shared<GlobalMap>();
-  map->version = message.version;
-  map->frame_id = std::move(message.frame_id);
-  map->resolution = message.resolution;
-  map->stamp = message.stamp;
-  map->encoding = std::move(message.encoding);
-  map->payload_bytes = message.data.size();
-  map->contributors = std::move(message.contributors);
-  map->tree = std::shared_ptr<const octomap::OcTree>(std::move(decoded.tree));
-  return map;
-}
 
 ClientCore::ClientCore(Options options, Vendor vendor) : options_(validated(std::move(options))), vendor_(vendor) {
   requester_ = options_.robot_id.empty() ? "observer_" + options_.session_id + "_" + std::to_string(::getpid())
@@ -312,18 +253,55 @@ void ClientCore::check_connection() {
   invoke(active_.connection, connected);
 }
 
+void ClientCore::deliver_poses(std::deque<Pose>& poses) {
+  for (Pose& p : poses) {
+    {
+      std::lock_guard<std::mutex> lock(state_mutex_);
+      ++stats_.poses_received;
+      poses_[p.robot_id] = p;
+    }
+    if (p.robot_id == options_.robot_id) invoke(active_.own_pose, p);
+    invoke(active_.pose, p);
+  }
+}
+
+void ClientCore::deliver_map(GlobalMapMessage&& message) {
+  std::string error;
+  auto decoded = decode_global_map(std::move(message), options_.max_global_map_bytes, error);
+  {
+    std::lock_guard<std::mutex> lock(state_mutex_);
+    ++(decoded ? stats_.global_maps_received : stats_.global_maps_rejected);
+    if (decoded) global_map_ = decoded;
+  }
+  if (decoded) {
+    invoke(active_.map, decoded);
+  } else {
+    warn(error);
+  }
+}
+
+void ClientCore::report_write_failures() {
+  std::uint64_t failures = 0;
+  {
+    std::lock_guard<std::mutex> lock(state_mutex_);
+    failures = stats_.write_failures;
+  }
+  if (failures <= failures_reported_) return;
+  failures_reported_ = failures;
+  warn("map update could not be written (" + std::to_string(failures) + " failures so far)");
+}
+
 void ClientCore::dispatch_loop() {
-  std::uint64_t failures_reported = 0;
   while (!stop_) {
     std::deque<Pose> poses;
     std::optional<GlobalMapMessage> map;
-    bool request = false;
     Callbacks callbacks;
-    bool install = false;
+    bool request = false, install = false;
     {
       std::unique_lock<std::mutex> lock(inbox_mutex_);
-      inbox_cv_.wait_for(lock, options_.poll_period,
-                         [this] { return stop_ || !pose_inbox_.empty() || map_inbox_ || request_pending_ || callbacks_pending_; });
+      inbox_cv_.wait_for(lock, options_.poll_period, [this] {
+        return stop_ || !pose_inbox_.empty() || map_inbox_ || request_pending_ || callbacks_pending_;
+      });
       if (stop_) break;
       poses.swap(pose_inbox_);
       map.swap(map_inbox_);
@@ -334,62 +312,10 @@ void ClientCore::dispatch_loop() {
     if (install) install_callbacks(std::move(callbacks));
     check_connection();
     if (request && !transport_->write_request(requester_, ++nonce_)) warn("map request could not be written");
-    for (Pose& p : poses) {
-      {
-        std::lock_guard<std::mutex> lock(state_mutex_);
-        ++stats_.poses_received;
-        poses_[p.robot_id] = p;
-      }
-      if (p.robot_id == options_.robot_id) invoke(active_.own_pose, p);
-      invoke(active_.pose, p);
-    }
-    if (map) {
-      std::string error;
-      auto decoded = decode_global_map(std::move(*map), options_.max_global_map_bytes, error);
-      {
-        std::lock_guard<std::mutex> lock(state_mutex_);
-        ++(decoded ? stats_.global_maps_received : stats_.global_maps_rejected);
-        if (decoded) global_map_ = decoded;
-      }
-      if (decoded) {
-        invoke(active_.map, decoded);
-      } else {
-        warn(error);
-      }
-    }
-    std::uint64_t failures = 0;
-    {
-      std::lock_guard<std::mutex> lock(state_mutex_);
-      failures = stats_.write_failures;
-    }
-    if (failures > failures_reported) {
-      failures_reported = failures;
-      warn("map update could not be written (" + std::to_string(failures) + " failures so far)");
-    }
+    deliver_poses(poses);
+    if (map) deliver_map(std::move(*map));
+    report_write_failures();
   }
 }
 
 }  // namespace mapmerge::client::detail
-
-namespace mapmerge::client {
-
-std::string check_options(const Options& options) {
-  if (!options.robot_id.empty() && !wire::is_valid_robot_id(options.robot_id)) {
-    return "invalid robot id '" + options.robot_id +
-           "' (a letter, then letters, digits or '_', at most 64 characters)";
-  }
-  if (options.domain < 0 || options.domain > 232) {
-    return "DDS domain " + std::to_string(options.domain) + " out of range 0..232";
-  }
-  if (options.zstd_level < 1 || options.zstd_level > 19) {
-    return "zstd level " + std::to_string(options.zstd_level) + " out of range 1..19";
-  }
-  try {
-    wire::ProfileSpec::parse(options.profile);
-  } catch (const std::invalid_argument& e) {
-    return e.what();
-  }
-  return {};
-}
-
-}  // namespace mapmerge::client

@@ -55,6 +55,9 @@ class ClientCore {
   void on_pose(Pose&& pose);                       // DDS thread
   void on_global_map(GlobalMapMessage&& message);  // DDS thread
   void dispatch_loop();
+  void deliver_poses(std::deque<Pose>& poses);      // dispatch thread
+  void deliver_map(GlobalMapMessage&& message);     // dispatch thread
+  void report_write_failures();                     // dispatch thread
   void send_loop();
   void warn(const std::string& message);           // dispatch thread
   void check_connection();                         // dispatch thread
@@ -90,6 +93,7 @@ class ClientCore {
   Callbacks pending_;
   bool callbacks_pending_ = false;
   bool was_connected_ = false;                  // dispatch thread only
+  std::uint64_t failures_reported_ = 0;         // dispatch thread only
 
   // Send thread outbox, guarded by send_mutex_.
   std::mutex send_mutex_;
