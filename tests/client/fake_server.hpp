@@ -20,9 +20,11 @@ namespace mapmerge::test {
 
 class FakeServer {
  public:
-  explicit FakeServer(int domain) {
+  /// `discovery_server`: "HOST:PORT" of a Fast DDS discovery server; empty: simple discovery.
+  explicit FakeServer(int domain, const std::string& discovery_server = "") {
     wire::ParticipantOptions o;
     o.domain = domain;
+    o.profile.discovery_server = discovery_server;
     o.name = "fake-mapmerge-server";
     participant_ = std::make_unique<wire::FastddsParticipant>(o);
     auto& p = *participant_;
