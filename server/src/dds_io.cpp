@@ -153,6 +153,7 @@ DdsIo::DdsIo(const NetworkConfig& config, Callbacks callbacks)
   options.profile = wire::ProfileSpec::parse(config.profile);
   options.profile.discovery_server = config.discovery_server;
   options.name = "mapmerge-server";
+  options.discover_all_topics = true;  // robots' map topics appear in discovery before we read them
   impl_->participant = std::make_unique<wire::FastddsParticipant>(options, &impl_->discovery,
                                                                   fdds::StatusMask::none());
   auto& p = *impl_->participant;

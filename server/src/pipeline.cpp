@@ -42,7 +42,6 @@ bool Pipeline::ingest(const MapSample& m, bool persist) {
     ++rejected_;
     registry_.reject(robot, decoded.reason);
     spdlog::warn("robot {}: update {}/{} rejected: {}", robot, m.session_id, m.sequence, decoded.reason);
-    if (hooks_.changed) hooks_.changed();
     return false;
   }
   RobotRecord r;

@@ -32,7 +32,7 @@ Server::Server(ServerConfig config) : config_(std::move(config)) {
   DdsIo::Callbacks callbacks;
   callbacks.on_map = [this](MapSample s) { on_map(std::move(s)); };
   callbacks.on_request = [this](const std::string& who) {
-    spdlog::debug("map request from {}", who);
+    spdlog::info("map request from {}: republishing", who);
     requested_ = true;
     cv_.notify_all();
   };

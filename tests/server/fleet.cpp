@@ -57,6 +57,29 @@ void RobotPublisher::publish_bytes(const std::vector<std::uint8_t>& bytes, const
   writer_->write(&u);
 }
 
+RosRobotPublisher::RosRobotPublisher(int domain, const std::string& id) : id_(id) {
+  wire::ParticipantOptions o;
+  o.domain = domain;
+  o.name = "ros_robot_" + id;
+  participant_ = std::make_unique<wire::FastddsParticipant>(o);
+  writer_ = participant_->create_writer(
+      participant_->topic<octomap_msgs::msg::dds_::Octomap_PubSubType>(wire::ros_octomap_topic(id)),
+      wire::TopicKind::State);
+}
+
+RosRobotPublisher::~RosRobotPublisher() = default;
+
+void RosRobotPublisher::publish(const octomap::OcTree& tree) {
+  const auto body = encode_tree_body(tree, true);
+  octomap_msgs::msg::dds_::Octomap_ m;
+  m.header().frame_id(id_ + "/map");
+  m.binary(true);
+  m.id("OcTree");
+  m.resolution(tree.getResolution());
+  m.data(std::vector<int8_t>(body.begin(), body.end()));
+  writer_->write(&m);
+}
+
 struct FleetListener::Impl {
   mutable std::mutex mutex;
   std::condition_variable cv;
@@ -134,7 +157,11 @@ struct FleetListener::Impl {
     global.version = g.version();
     global.tree = std::shared_ptr<octomap::OcTree>(std::move(decoded.tree));
     global.contributors.clear();
-    for (const auto& c : g.contributors()) global.contributors.push_back(c.robot_id());
+    global.contributor_sequence.clear();
+    for (const auto& c : g.contributors()) {
+      global.contributors.push_back(c.robot_id());
+      global.contributor_sequence[c.robot_id()] = c.sequence_number();
+    }
     global.received = std::chrono::steady_clock::now();
     ++globals;
   }

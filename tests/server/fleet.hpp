@@ -48,6 +48,19 @@ class RobotPublisher {
   eprosima::fastdds::dds::DataWriter* writer_ = nullptr;
 };
 
+/// A ROS 2 robot as octomap_server publishes: octomap_msgs/Octomap (binary) on rt/<id>/octomap_binary.
+class RosRobotPublisher {
+ public:
+  RosRobotPublisher(int domain, const std::string& id);
+  ~RosRobotPublisher();
+  void publish(const octomap::OcTree& tree);
+
+ private:
+  std::string id_;
+  std::unique_ptr<wire::FastddsParticipant> participant_;
+  eprosima::fastdds::dds::DataWriter* writer_ = nullptr;
+};
+
 struct ReceivedPose {
   Eigen::Matrix4d T_global_robot = Eigen::Matrix4d::Identity();
   int status = 0;  ///< mapmerge::PoseStatus: 0 unknown, 1 aligned, 2 rejected
@@ -59,6 +72,7 @@ struct ReceivedGlobal {
   std::uint64_t version = 0;
   std::shared_ptr<octomap::OcTree> tree;
   std::vector<std::string> contributors;
+  std::map<std::string, std::uint64_t> contributor_sequence;  ///< robot -> map sequence fused
   std::chrono::steady_clock::time_point received;
 };
 

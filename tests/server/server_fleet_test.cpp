@@ -1,68 +1,13 @@
 // mapmerge-server end to end: a real server process, robots and an operator as real Fast DDS
 // participants on loopback (the `local` profile), real SQLite state, real maps cut from data/.
 
-#include <gtest/gtest.h>
-
-#include "dds_test_env.hpp"
-#include "fleet.hpp"
-#include "mapmerge/align/map_cut.hpp"
-#include "server_process.hpp"
+#include "server_fixture.hpp"
 
 namespace mapmerge::test {
 namespace {
 
-using namespace std::chrono_literals;
 using Box = Eigen::AlignedBox3d;
 namespace ma = mapmerge::align;
-
-constexpr auto kMergeTimeout = 120s;  ///< generous: 2 shared cores, alignment of real maps
-constexpr double kMaxRotationDeg = 2.0;
-constexpr double kMaxTranslationM = 0.3;  ///< ~4 voxels of geb079 (8 cm), after chaining two merges
-
-Box box(double x0, double x1) { return Box(Eigen::Vector3d(x0, -8, -1), Eigen::Vector3d(x1, 8, 4)); }
-
-/// Three robots along the geb079 corridor (8 cm), overlapping their neighbours by 8-10 m, each
-/// in a random frame; and a stranger from another building.
-struct Fleet {
-  std::shared_ptr<const octomap::OcTree> world = load_data_map("geb079.bt");
-  std::vector<RobotMap> robots{
-      cut_robot_map(*world, "r1", box(-8, 12), ma::make_transform(1, 2, 0, 0, 0, 30)),
-      cut_robot_map(*world, "r2", box(4, 24), ma::make_transform(-4, 7, 0.3, -3, 2, 155)),
-      cut_robot_map(*world, "r3", box(14, 31), ma::make_transform(5, -3, 0.2, 2, -1, -70))};
-  /// The truth: T_global_robot = T_r1_world * T_robot_world^-1.
-  Eigen::Matrix4d truth(std::size_t i) const {
-    return robots[0].T_robot_world * robots[i].T_robot_world.inverse();
-  }
-};
-
-const Fleet& fleet() {
-  static const Fleet f;
-  return f;
-}
-
-class ServerFleet : public ::testing::Test {
- protected:
-  int domain = dds_domain();
-  std::string dir = temp_dir(::testing::UnitTest::GetInstance()->current_test_info()->name());
-
-  std::unique_ptr<ServerProcess> start_server(std::vector<std::string> extra = {}) {
-    std::vector<std::string> args{"--domain", std::to_string(domain), "--profile", "local",
-                                  "--state-dir", dir + "/state"};
-    args.insert(args.end(), extra.begin(), extra.end());
-    return std::make_unique<ServerProcess>(args, dir + "/server.log");
-  }
-  static bool aligned(const FleetListener& l, const std::vector<std::string>& ids) {
-    const auto poses = l.poses();
-    for (const auto& id : ids) {
-      auto it = poses.find(id);
-      if (it == poses.end() || it->second.status != 1) return false;
-    }
-    return true;
-  }
-  static bool global_has(const FleetListener& l, std::size_t contributors) {
-    return l.global().contributors.size() >= contributors;
-  }
-};
 
 TEST_F(ServerFleet, ThreeRobotsAreAlignedAndAStrangerStaysUnknown) {
   auto server = start_server({"--reference", "r1"});

@@ -1,5 +1,6 @@
 #pragma once
-/// mapmerge-server as a child process of a test, its log in a file, stopped by signal.
+/// A program (mapmerge-server, `fastdds discovery`) as a child process of a test, in its own
+/// process group (signals reach its children too), its output in a log file.
 
 #include <chrono>
 #include <csignal>
@@ -16,13 +17,15 @@ namespace mapmerge::test {
 
 inline std::string server_binary() { return std::string(MAPMERGE_BINARY_DIR) + "/bin/mapmerge-server"; }
 
-class ServerProcess {
+class ChildProcess {
  public:
-  ServerProcess(const std::vector<std::string>& args, const std::string& log_path) : log_path_(log_path) {
-    std::vector<std::string> argv_s{server_binary()};
+  ChildProcess(const std::string& program, const std::vector<std::string>& args, const std::string& log_path)
+      : log_path_(log_path) {
+    std::vector<std::string> argv_s{program};
     argv_s.insert(argv_s.end(), args.begin(), args.end());
     pid_ = ::fork();
     if (pid_ == 0) {
+      ::setpgid(0, 0);
       std::vector<char*> argv;
       for (auto& a : argv_s) argv.push_back(a.data());
       argv.push_back(nullptr);
@@ -30,13 +33,14 @@ class ServerProcess {
         ::dup2(fileno(log), STDOUT_FILENO);
         ::dup2(fileno(log), STDERR_FILENO);
       }
-      ::execv(argv_s[0].c_str(), argv.data());
+      ::execvp(argv_s[0].c_str(), argv.data());
       ::_exit(127);
     }
+    if (pid_ > 0) ::setpgid(pid_, pid_);
   }
-  ~ServerProcess() { kill(SIGKILL); }
-  ServerProcess(const ServerProcess&) = delete;
-  ServerProcess& operator=(const ServerProcess&) = delete;
+  ~ChildProcess() { kill(SIGKILL); }
+  ChildProcess(const ChildProcess&) = delete;
+  ChildProcess& operator=(const ChildProcess&) = delete;
 
   bool running() {
     if (pid_ <= 0 || exited_) return false;
@@ -49,19 +53,21 @@ class ServerProcess {
   }
   /// Sends `sig` and waits for the exit; returns the exit code (128 + signal when killed).
   int kill(int sig, std::chrono::seconds timeout = std::chrono::seconds(20)) {
-    if (running()) ::kill(pid_, sig);
+    if (running()) ::kill(-pid_, sig);
     const auto deadline = std::chrono::steady_clock::now() + timeout;
     while (running() && std::chrono::steady_clock::now() < deadline) {
       std::this_thread::sleep_for(std::chrono::milliseconds(20));
     }
     if (running()) {
-      ::kill(pid_, SIGKILL);
+      ::kill(-pid_, SIGKILL);
       ::waitpid(pid_, nullptr, 0);
       exited_ = true;
       code_ = -1;
     }
     return code_;
   }
+  /// Signals the whole group (children included) without waiting.
+  void signal_group(int sig) { if (pid_ > 0) ::kill(-pid_, sig); }
   pid_t pid() const { return pid_; }
   std::string log() const {
     std::ifstream in(log_path_);
@@ -75,6 +81,12 @@ class ServerProcess {
   pid_t pid_ = -1;
   bool exited_ = false;
   int code_ = -1;
+};
+
+class ServerProcess : public ChildProcess {
+ public:
+  ServerProcess(const std::vector<std::string>& args, const std::string& log_path)
+      : ChildProcess(server_binary(), args, log_path) {}
 };
 
 }  // namespace mapmerge::test

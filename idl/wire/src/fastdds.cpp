@@ -61,7 +61,7 @@ dds::DomainParticipantQos participant_qos(const ProfileSpec& spec) {
   return qos;
 }
 
-void use_discovery_server(dds::DomainParticipantQos& qos, const std::string& address) {
+void use_discovery_server(dds::DomainParticipantQos& qos, const std::string& address, bool super_client) {
   const auto colon = address.rfind(':');
   if (colon == std::string::npos) throw DdsError("discovery server must be HOST:PORT, got '" + address + "'");
   const std::string host = address.substr(0, colon);
@@ -74,7 +74,8 @@ void use_discovery_server(dds::DomainParticipantQos& qos, const std::string& add
   locator.port = static_cast<uint32_t>(port);
   server.metatrafficUnicastLocatorList.push_back(locator);
   auto& discovery = qos.wire_protocol().builtin.discovery_config;
-  discovery.discoveryProtocol = eprosima::fastrtps::rtps::DiscoveryProtocol_t::CLIENT;
+  discovery.discoveryProtocol = super_client ? eprosima::fastrtps::rtps::DiscoveryProtocol_t::SUPER_CLIENT
+                                             : eprosima::fastrtps::rtps::DiscoveryProtocol_t::CLIENT;
   discovery.m_DiscoveryServers.push_back(server);
   // The server is the only peer: no initial peers list of our own is needed.
   qos.wire_protocol().builtin.initialPeersList.clear();
@@ -115,7 +116,9 @@ FastddsParticipant::FastddsParticipant(const ParticipantOptions& options,
   load_embedded_profiles();
   dds::DomainParticipantQos qos = participant_qos(options.profile);
   if (!options.name.empty()) qos.name(options.name);
-  if (!options.profile.discovery_server.empty()) use_discovery_server(qos, options.profile.discovery_server);
+  if (!options.profile.discovery_server.empty()) {
+    use_discovery_server(qos, options.profile.discovery_server, options.discover_all_topics);
+  }
   if (options.security.enabled()) {
     try {
       use_security(qos, options.security);

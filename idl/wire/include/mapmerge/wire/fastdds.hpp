@@ -31,6 +31,10 @@ struct ParticipantOptions {
   ProfileSpec profile;   ///< network configuration
   std::string name;      ///< participant name shown in discovery tools
   SecurityOptions security;  ///< DDS Security identity (scripts/make-keystore); default: off
+  /// With a discovery server: join as SUPER_CLIENT, which receives the discovery data of every
+  /// topic (a plain CLIENT hears only of topics it reads or writes). For services that
+  /// subscribe to topics as they appear (mapmerge-server).
+  bool discover_all_topics = false;
 };
 
 /// One Fast DDS participant with one publisher and one subscriber. Everything it created is
