@@ -1,0 +1,168 @@
+// The server's units without DDS: admission of updates, global poses from pairwise edges,
+// the coalescing scheduler, the SQLite store (reopened as after a crash), the config loader.
+
+#include <atomic>
+#include <condition_variable>
+#include <filesystem>
+#include <mutex>
+
+#include <gtest/gtest.h>
+
+#include "fleet.hpp"
+#include "mapmerge/align/map_cut.hpp"
+#include "mapmerge/server/config.hpp"
+#include "mapmerge/server/pose_graph.hpp"
+#include "mapmerge/server/registry.hpp"
+#include "mapmerge/server/scheduler.hpp"
+#include "mapmerge/server/store.hpp"
+
+namespace mapmerge::server {
+namespace {
+
+using namespace std::chrono_literals;
+
+TEST(Registry, IgnoresDuplicatesAndOutOfOrderAndRestartsWithASession) {
+  Registry r;
+  EXPECT_EQ(r.admit("r1", "a", 5), Admission::kNew);
+  EXPECT_EQ(r.admit("r1", "a", 5), Admission::kDuplicate);
+  EXPECT_EQ(r.admit("r1", "a", 4), Admission::kOutOfOrder);
+  EXPECT_EQ(r.admit("r1", "a", 6), Admission::kNew);
+  EXPECT_EQ(r.admit("r1", "b", 1), Admission::kNewSession);  // rebooted: numbering restarts
+  EXPECT_EQ(r.admit("r1", "b", 2), Admission::kNew);
+  EXPECT_EQ(r.admit("r2", "a", 1), Admission::kNew);         // robots are independent
+}
+
+TEST(Registry, NewSessionDropsTheRobotsAlignments) {
+  Registry r;
+  auto tree = std::make_shared<const octomap::OcTree>(0.1);
+  for (const char* id : {"r1", "r2"}) {
+    RobotRecord rec;
+    rec.robot_id = id;
+    rec.session_id = "a";
+    rec.tree = tree;
+    r.put_map(rec);
+  }
+  r.claim_reference("r1");
+  r.put_edge(Edge{"r1", "r2", Eigen::Matrix4d::Identity(), 0.01});
+  EXPECT_EQ(r.status("r2"), RobotStatus::kAligned);
+  RobotRecord rebooted;
+  rebooted.robot_id = "r2";
+  rebooted.session_id = "b";
+  rebooted.tree = tree;
+  r.put_map(rebooted);
+  EXPECT_EQ(r.status("r2"), RobotStatus::kUnknown);
+  EXPECT_TRUE(r.edges().empty());
+}
+
+TEST(PoseGraph, ComposesTransformsAlongTheBestPath) {
+  const Eigen::Matrix4d T12 = align::make_transform(1, 2, 0, 0, 0, 30);
+  const Eigen::Matrix4d T23 = align::make_transform(-3, 1, 0.5, 2, 0, -60);
+  const Eigen::Matrix4d T13_bad = align::make_transform(9, 9, 9, 0, 0, 0);
+  // r1 <- r2 <- r3 with good edges; a direct r1 <- r3 edge with a poor fitness loses.
+  const std::vector<Edge> edges{{"r1", "r2", T12, 0.02}, {"r3", "r2", rigid_inverse(T23), 0.02},
+                                {"r1", "r3", T13_bad, 0.5}, {"r4", "r5", T12, 0.01}};
+  const auto poses = global_poses("r1", edges);
+  ASSERT_EQ(poses.size(), 3u);  // r4, r5 are not connected to the reference
+  EXPECT_TRUE(poses.at("r1").T_global_robot.isIdentity());
+  EXPECT_TRUE(poses.at("r2").T_global_robot.isApprox(T12, 1e-12));
+  EXPECT_TRUE(poses.at("r3").T_global_robot.isApprox(T12 * T23, 1e-12));
+  EXPECT_EQ(poses.at("r3").hops, 2);
+}
+
+TEST(Scheduler, CoalescesAFastPublisherAndNeverRunsARobotTwiceAtOnce) {
+  std::mutex m;
+  std::condition_variable cv;
+  bool release = false;
+  std::atomic<int> running{0}, max_running{0};
+  std::vector<std::uint64_t> processed;
+  Scheduler s(4, [&](const std::string&, std::optional<MapSample> map, bool) {
+    const int now = ++running;
+    max_running = std::max(max_running.load(), now);
+    std::unique_lock<std::mutex> lock(m);
+    cv.wait(lock, [&] { return release; });
+    if (map) processed.push_back(map->sequence);
+    --running;
+  });
+  for (std::uint64_t seq = 1; seq <= 50; ++seq) {
+    MapSample sample;
+    sample.robot_id = "r1";
+    sample.sequence = seq;
+    s.submit(sample);
+  }
+  {
+    std::lock_guard<std::mutex> lock(m);
+    release = true;
+  }
+  cv.notify_all();
+  const auto deadline = std::chrono::steady_clock::now() + 30s;
+  while (!s.idle() && std::chrono::steady_clock::now() < deadline) std::this_thread::sleep_for(10ms);
+  ASSERT_TRUE(s.idle());
+  const SchedulerStats st = s.stats();
+  EXPECT_EQ(max_running.load(), 1);           // one robot: one job at a time
+  EXPECT_LE(processed.size(), 2u);            // the first (already running) and the latest
+  EXPECT_EQ(processed.back(), 50u);           // latest wins
+  EXPECT_EQ(st.coalesced + processed.size(), 50u);
+  EXPECT_LE(st.max_queued, 1u);               // the queue holds robots, not updates
+}
+
+TEST(Store, SurvivesReopeningAndKeepsTheLastOfEverything) {
+  const std::string dir = test::temp_dir("store_unit");
+  StoreConfig cfg;
+  cfg.state_dir = dir;
+  MapSample m;
+  m.robot_id = m.topic_robot = "r1";
+  m.session_id = "s";
+  m.sequence = 7;
+  m.encoding = "octomap-bt";
+  m.data = {1, 2, 3};
+  GlobalMapOut g;
+  g.version = 12;
+  g.data = {9, 9};
+  g.contributors = {{"r1", "s", 7}};
+  const Eigen::Matrix4d T = align::make_transform(1, 2, 3, 10, 20, 30);
+  {
+    Store s(cfg);
+    s.save_map(m);
+    m.sequence = 8;
+    s.save_map(m);
+    s.save_alignment("r1", {Edge{"r1", "r2", T, 0.03}});
+    s.save_global(g, {PoseOut{"r2", "r2/map", T, 0.03, 0.5, PoseState::kAligned}});
+  }
+  Store s(cfg);
+  const StoreSnapshot snap = s.load();
+  EXPECT_EQ(snap.reference, "r1");
+  ASSERT_EQ(snap.maps.size(), 1u);
+  EXPECT_EQ(snap.maps[0].sequence, 8u);
+  EXPECT_EQ(snap.maps[0].data, m.data);
+  ASSERT_EQ(snap.edges.size(), 1u);
+  EXPECT_TRUE(snap.edges[0].T_target_source.isApprox(T, 0.0));
+  ASSERT_TRUE(snap.global.has_value());
+  EXPECT_EQ(snap.global->version, 12u);
+  EXPECT_EQ(snap.global->contributors.at(0).sequence, 7u);
+  ASSERT_EQ(snap.poses.size(), 1u);
+  EXPECT_EQ(snap.poses[0].state, PoseState::kAligned);
+}
+
+TEST(Store, UnwritableDirectoryIsAClearError) {
+  StoreConfig cfg;
+  cfg.state_dir = "/proc/mapmerge-cannot-exist";
+  EXPECT_THROW(Store s(cfg), StoreError);
+}
+
+TEST(Config, ReadsSectionsAndRejectsUnknownKeys) {
+  const ServerConfig c = parse_server_config(
+      "network: {domain: 7, profile: default}\nmerge: {threads: 3, reference: r9}\n"
+      "publish: {min_interval_s: 0.5}\nalign: {validate: {max_fitness: 0.7}}\n");
+  EXPECT_EQ(c.network.domain, 7);
+  EXPECT_EQ(c.merge.threads, 3);
+  EXPECT_EQ(c.merge.reference, "r9");
+  EXPECT_DOUBLE_EQ(c.publish.min_interval_s, 0.5);
+  EXPECT_DOUBLE_EQ(c.align.validate.max_fitness, 0.7);
+  EXPECT_THROW(parse_server_config("merge: {thread: 3}\n"), align::ConfigError);
+  EXPECT_THROW(parse_server_config("network: {domain: 200}\n"), align::ConfigError);
+  EXPECT_THROW(parse_server_config("merge: {threads: many}\n"), align::ConfigError);
+  EXPECT_EQ(parse_server_config("").merge.threads, 2);
+}
+
+}  // namespace
+}  // namespace mapmerge::server
