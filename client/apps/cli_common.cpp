@@ -33,6 +33,13 @@ void add_dds_flags(CLI::App& app, DdsFlags& flags) {
   app.add_flag("-v,--verbose", flags.verbose, "show the DDS and OctoMap libraries' own messages on stderr");
 }
 
+std::string check_flags(const DdsFlags& flags, const client::Options& options) {
+  if (flags.vendor == "cyclone" && !flags.discovery_server.empty()) {
+    return "--discovery-server needs --vendor fastdds (Cyclone DDS has no Fast DDS discovery server client)";
+  }
+  return client::check_options(options);
+}
+
 client::Options client_options(const DdsFlags& flags) {
   client::Options o;
   o.domain = flags.domain;

@@ -31,6 +31,8 @@ struct DdsFlags {
   bool verbose = false;
 };
 void add_dds_flags(CLI::App& app, DdsFlags& flags);
+/// Why the flags (and the options made of them) cannot work; empty when they can.
+std::string check_flags(const DdsFlags& flags, const client::Options& options);
 /// Client options from the flags (robot id left to the caller).
 client::Options client_options(const DdsFlags& flags);
 

@@ -169,7 +169,7 @@ int main(int argc, char** argv) {
   if (!cli::parse(app, argc, argv, code)) return code;
 
   client::Options probe = cli::client_options(config.dds);
-  if (const std::string error = client::check_options(probe); !error.empty()) {
+  if (const std::string error = cli::check_flags(config.dds, probe); !error.empty()) {
     std::cerr << "mapmerge-listen: " << error << std::endl;
     return cli::kExitUsage;
   }

@@ -135,7 +135,7 @@ int main(int argc, char** argv) {
 
   client::Options probe = cli::client_options(config.dds);
   probe.robot_id = config.id;
-  if (const std::string error = client::check_options(probe); !error.empty()) {
+  if (const std::string error = cli::check_flags(config.dds, probe); !error.empty()) {
     std::cerr << "mapmerge-robot: " << error << std::endl;
     return cli::kExitUsage;
   }

@@ -10,6 +10,7 @@
 #include <string>
 
 #include <gtest/gtest.h>
+#include <octomap/OcTree.h>
 #include <nlohmann/json.hpp>
 
 #include "dds_test_env.hpp"
@@ -36,6 +37,15 @@ inline PoseError pose_error(const std::array<double, 16>& truth, const std::arra
   e.rotation_deg = std::acos(c) * 180.0 / M_PI;
   e.translation_m = std::hypot(truth[3] - estimate[3], truth[7] - estimate[7], truth[11] - estimate[11]);
   return e;
+}
+
+/// Occupied volume of a map [m^3] (independent of how far the tree is pruned).
+inline double occupied_volume(const octomap::OcTree& tree) {
+  double volume = 0.0;
+  for (auto it = tree.begin_leafs(), end = tree.end_leafs(); it != end; ++it) {
+    if (tree.isNodeOccupied(*it)) volume += std::pow(it.getSize(), 3);
+  }
+  return volume;
 }
 
 class ServerFixture : public ::testing::Test {
