@@ -5,6 +5,7 @@
 #include <cstring>
 #include <limits>
 #include <random>
+#include <sstream>
 #include <string>
 
 #include <zstd.h>
@@ -92,6 +93,25 @@ TEST_P(RealMap, Ros2MessageBodiesRoundTrip) {
 }
 
 INSTANTIATE_TEST_SUITE_P(Data, RealMap, ::testing::ValuesIn(kMaps));
+
+TEST(Codec, EncoderWritesExactlyWhatOctomapsOwnWriterWrites) {
+  // An unpruned tree with probabilistic values and an odd resolution, grown from a real map.
+  const auto real = decode_bt(file_bytes("geb079.bt")).tree;
+  ASSERT_TRUE(real);
+  octomap::OcTree tree(0.1234567);
+  int i = 0;
+  for (auto it = real->begin_leafs(), end = real->end_leafs(); it != end && i < 20000; ++it, ++i) {
+    tree.updateNode(it.getCoordinate(), i % 3 != 0);
+  }
+  std::ostringstream file, body;
+  tree.writeBinaryConst(file);
+  tree.writeBinaryData(body);
+  EXPECT_EQ(as_string(encode_map(tree, Encoding::kOctomapBt)), file.str());
+  EXPECT_EQ(as_string(encode_tree_body(tree, true)), body.str());
+  const DecodeResult back = decode_bt(encode_map(tree, Encoding::kOctomapBt));
+  ASSERT_TRUE(back.ok()) << back.reason;
+  EXPECT_EQ(back.num_nodes, tree.size());
+}
 
 // --- encoding field ----------------------------------------------------------------------------
 

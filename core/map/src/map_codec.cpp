@@ -323,15 +323,18 @@ std::vector<std::uint8_t> encode_map(const octomap::OcTree& tree, Encoding encod
 
 std::vector<std::uint8_t> encode_map(const octomap::OcTree& tree, Encoding encoding,
                                      const EncodeOptions& options) {
-  std::ostringstream out(std::ios::binary);
+  std::vector<std::uint8_t> raw;
   if (encoding == Encoding::kOctomapOt) {
-    tree.write(out);
+    std::ostringstream out(std::ios::binary);
+    if (!tree.write(out)) throw MapError("cannot serialise the octree");
+    const std::string text = out.str();
+    raw.assign(text.begin(), text.end());
   } else {
-    tree.writeBinaryConst(out);
+    // Same bytes as OcTree::writeBinaryConst, without its recursion and stderr chatter.
+    detail::append_binary_header(tree, raw);
+    detail::append_binary_body(tree, raw);
   }
-  if (!out) throw MapError("cannot serialise the octree");
-  const std::string raw = out.str();
-  if (encoding != Encoding::kOctomapBtZstd) return {raw.begin(), raw.end()};
+  if (encoding != Encoding::kOctomapBtZstd) return raw;
   // The frame carries its content size (lets the receiver reject oversize before inflating)
   // and a checksum (a corrupted payload fails to decompress instead of yielding other bytes).
   std::unique_ptr<ZSTD_CCtx, decltype(&ZSTD_freeCCtx)> ctx(ZSTD_createCCtx(), &ZSTD_freeCCtx);
@@ -390,12 +393,13 @@ DecodeResult decode_tree_body(std::string_view id, double resolution, bool binar
 }
 
 std::vector<std::uint8_t> encode_tree_body(const octomap::OcTree& tree, bool binary) {
-  std::ostringstream out(std::ios::binary);
   if (binary) {
-    tree.writeBinaryData(out);
-  } else {
-    tree.writeData(out);
+    std::vector<std::uint8_t> body;
+    detail::append_binary_body(tree, body);
+    return body;
   }
+  std::ostringstream out(std::ios::binary);
+  tree.writeData(out);
   if (!out) throw MapError("cannot serialise the octree body");
   const std::string raw = out.str();
   return {raw.begin(), raw.end()};

@@ -4,6 +4,9 @@
 #include <cstddef>
 #include <cstdint>
 #include <string>
+#include <vector>
+
+#include <octomap/OcTree.h>
 
 #include "mapmerge/map/map_codec.hpp"
 
@@ -24,5 +27,16 @@ TreeScan scan_binary_body(const std::uint8_t* data, std::size_t size, std::size_
 /// Checks a full body (OcTree::writeData: per node a float log-odds + 1 byte child mask,
 /// depth-first). Every byte must be consumed; depth <= 16; values finite; at most `max_nodes`.
 TreeScan scan_full_body(const std::uint8_t* data, std::size_t size, std::size_t max_nodes);
+
+}  // namespace mapmerge::detail
+
+namespace mapmerge::detail {
+
+/// Appends `tree`'s binary body exactly as OcTree::writeBinaryData writes it (2 bytes of child
+/// codes per inner node, depth-first), without recursion and without OctoMap's debug output.
+void append_binary_body(const octomap::OcTree& tree, std::vector<std::uint8_t>& out);
+
+/// Appends the `.bt` text header OcTree::writeBinaryConst writes (id, size, res, data).
+void append_binary_header(const octomap::OcTree& tree, std::vector<std::uint8_t>& out);
 
 }  // namespace mapmerge::detail
