@@ -287,7 +287,7 @@ Image render_map(const octomap::OcTree& tree, const RenderConfig& config, const 
     return Eigen::Vector2d(camera.project(p).head<2>());
   };
   const bool empty = scene.occupied.empty();
-  const auto top_box = empty ? std::make_pair(Eigen::Vector2d(0, 0), Eigen::Vector2d(2, 1))
+  const auto top_box = empty ? std::make_pair(Eigen::Vector2d(0, 0), Eigen::Vector2d(1, 1))
                              : projected_box(scene, config.frames, top_view);
   const auto oblique_box = empty ? top_box : projected_box(scene, config.frames, oblique_view);
   Layout layout = make_layout(config, top_box.second - top_box.first,
@@ -299,7 +299,7 @@ Image render_map(const octomap::OcTree& tree, const RenderConfig& config, const 
   cfg.height = layout.height;
   draw_title(canvas, tree, cfg, scene);
   draw_panel_frames(canvas, layout, provenance != nullptr);
-  draw_legend(canvas, cfg, scene, provenance);
+  if (!empty || provenance != nullptr) draw_legend(canvas, cfg, scene, provenance);
   if (empty) {
     canvas.text(layout.top.x + layout.top.w / 2 - 108, layout.top.y + layout.top.h / 2, "EMPTY MAP", 4, kGrey);
     return image;
