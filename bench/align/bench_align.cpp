@@ -47,6 +47,8 @@ struct Row {
   double overlap = 0, fitness = 0, t_err = 0, rot_err = 0, trans_err = 0, time_ms = 0;
   bool accepted = false, success = false;
   std::string reason;
+  double inlier_share = 0, overlap_est = 0;
+  std::size_t inliers = 0;
 };
 
 struct Errors {
@@ -122,6 +124,9 @@ Row run_case(const std::string& map, const Prepared& target, const Prepared& sou
   row.accepted = r.accepted;
   row.fitness = r.fitness;
   row.reason = r.reason;
+  row.inlier_share = r.inlier_share;
+  row.overlap_est = r.overlap;
+  row.inliers = r.inliers;
   // Two preparations run in parallel in `mapmerge merge`: count the slower one.
   row.time_ms = std::max(target.ms, source.ms) + align_ms;
   if (r.accepted) {
@@ -223,6 +228,7 @@ int main(int argc, char** argv) {
   unsigned seed = 1;
   bool quick = false, all_variants = false, paper_pair = false;
   double max_translation = 10.0, max_tilt = 5.0;
+  double z_min = -1e9, z_max = 1e9;
   app.add_option("--map", map_path, "real map (.bt/.ot)");
   app.add_option("--config", config_path, "YAML config of the default variant");
   app.add_option("--overlaps", overlaps, "overlaps [%]")->delimiter(',');
@@ -233,6 +239,8 @@ int main(int argc, char** argv) {
   app.add_option("--seed", seed, "random seed of the transforms");
   app.add_option("--max-translation", max_translation, "|x|,|y| of T_R up to this [m]");
   app.add_option("--max-tilt", max_tilt, "|roll|,|pitch| of T_R up to this [deg]");
+  app.add_option("--zmin", z_min, "keep only the map's voxels above this z first [m]");
+  app.add_option("--zmax", z_max, "keep only the map's voxels below this z first [m]");
   app.add_option("--out", out_path, "also write the Markdown report here");
   app.add_option("--write-pair", write_pair, "write the paper's pair as DIR/scene.bt and DIR/model.bt and exit");
   app.add_flag("--quick", quick, "two overlaps, three transforms, default variant");
@@ -249,6 +257,11 @@ int main(int argc, char** argv) {
     std::unique_ptr<octomap::OcTree> tree = mapmerge::read_octree_file(map_path);
     if (coarsen > 1) tree = ma::coarsen(*tree, coarsen);
     std::string name = map_path.substr(map_path.find_last_of('/') + 1);
+    if (z_min > -1e8 || z_max < 1e8) {
+      const Eigen::AlignedBox3d slab(Eigen::Vector3d(-1e6, -1e6, z_min), Eigen::Vector3d(1e6, 1e6, z_max));
+      tree = ma::cut_and_move(*tree, slab, Eigen::Matrix4d::Identity());
+      name += " z " + fmt(z_min, 1) + ".." + fmt(z_max, 1) + " m";
+    }
     if (coarsen > 1) name += " @" + fmt(tree->getResolution(), 2) + "m";
     const std::vector<Variant> variants = make_variants(base, all_variants);
     std::vector<Row> rows;
@@ -307,7 +320,8 @@ int main(int argc, char** argv) {
           std::cerr << pct << "% " << pose.str() << " " << v.name << ": "
                     << (r.success ? "ok" : (r.accepted ? "WRONG" : "rejected (" + r.reason + ")"))
                     << " rot " << fmt(r.rot_err, 2) << " trans " << fmt(r.trans_err) << " t "
-                    << fmt(r.time_ms / 1000, 2) << "s\n";
+                    << fmt(r.time_ms / 1000, 2) << "s f " << fmt(r.fitness, 4) << " share "
+                    << fmt(r.inlier_share) << " ovl " << fmt(r.overlap_est) << " in " << r.inliers << "\n";
         }
       }
     }

@@ -61,38 +61,50 @@ TEST(Fitness, NearestNeighbourPairs) {
   EXPECT_NEAR(f.value, (0.01 + 0.02 + 0.04) / 3.0, 1e-6);
 }
 
-/// A flat 2 m x 2 m floor (grid spacing h) with a 0.2 m box standing in its middle.
+/// A flat 2 m x 2 m floor (grid spacing h) with a box of 0.2 x 0.3 x 0.24 m standing on
+/// [0.9, 1.1] x [0.9, 1.2] (no symmetry, so no ties between equally salient points).
 std::vector<Eigen::Vector3f> floor_with_box(float h) {
   std::vector<Eigen::Vector3f> pts;
   const int n = static_cast<int>(std::lround(2.0F / h));
-  const int b0 = static_cast<int>(std::lround(0.9F / h)), b1 = static_cast<int>(std::lround(1.1F / h));
+  const int x0 = static_cast<int>(std::lround(0.9F / h)), x1 = static_cast<int>(std::lround(1.1F / h));
+  const int y0 = x0, y1 = static_cast<int>(std::lround(1.2F / h));
+  const int top = static_cast<int>(std::lround(0.24F / h));
   for (int i = 0; i <= n; ++i)
     for (int j = 0; j <= n; ++j) {
-      const bool under_box = i > b0 && i < b1 && j > b0 && j < b1;
+      const bool under_box = i > x0 && i < x1 && j > y0 && j < y1;
       if (!under_box) pts.emplace_back(i * h, j * h, 0.0F);
     }
-  for (int i = b0; i <= b1; ++i)
-    for (int j = b0; j <= b1; ++j)
-      for (int k = 1; k <= b1 - b0; ++k) {
-        const bool surface = i == b0 || i == b1 || j == b0 || j == b1 || k == b1 - b0;
+  for (int i = x0; i <= x1; ++i)
+    for (int j = y0; j <= y1; ++j)
+      for (int k = 1; k <= top; ++k) {
+        const bool surface = i == x0 || i == x1 || j == y0 || j == y1 || k == top;
         if (surface) pts.emplace_back(i * h, j * h, k * h);
       }
   return pts;
 }
 
+ma::KeypointConfig iss_config() {
+  ma::KeypointConfig c;
+  c.salient_radius = 6.0;  // x res (res = h)
+  c.non_max_radius = 4.0;
+  c.gamma_21 = 0.975;
+  c.gamma_32 = 0.975;
+  c.min_neighbors = 5;
+  return c;
+}
+
 TEST(Iss, FlatSurfaceHasNoKeypointsTheBoxHas) {
   const float h = 0.02F;
   const auto pts = floor_with_box(h);
-  ma::KeypointConfig c;  // defaults: salient radius 6 h, non-max radius 4 h
-  const auto kp = ma::iss_keypoints(pts, c, h);
+  const auto kp = ma::iss_keypoints(pts, iss_config(), h);
   ASSERT_FALSE(kp.empty());
-  const Eigen::Vector2f centre(1.0F, 1.0F);
+  const Eigen::Vector2f centre(1.0F, 1.05F);
   std::size_t near_box = 0;
   for (std::size_t idx : kp) {
     const Eigen::Vector3f& p = pts[idx];
     // Distance to the box footprint (0.9..1.1) and to the floor's outer border.
     const float dx = std::max(0.0F, std::abs(p.x() - centre.x()) - 0.1F);
-    const float dy = std::max(0.0F, std::abs(p.y() - centre.y()) - 0.1F);
+    const float dy = std::max(0.0F, std::abs(p.y() - centre.y()) - 0.15F);
     const float to_box = std::hypot(dx, dy);
     const float to_border = std::min({p.x(), p.y(), 2.0F - p.x(), 2.0F - p.y()});
     // Eq. 3: on a plane lambda2/lambda1 is ~1, above gamma_21, so the open floor has none.
@@ -105,7 +117,7 @@ TEST(Iss, FlatSurfaceHasNoKeypointsTheBoxHas) {
 TEST(Iss, KeypointsMoveWithTheShape) {
   const float h = 0.02F;
   const auto pts = floor_with_box(h);
-  ma::KeypointConfig c;
+  const ma::KeypointConfig c = iss_config();
   const auto kp = ma::iss_keypoints(pts, c, h);
   // Rotated by 30 degrees about z and shifted: the scatter matrices' eigenvalues do not change.
   const Eigen::Affine3f T = Eigen::Translation3f(3.0F, -1.0F, 0.5F) *

@@ -155,13 +155,16 @@ struct Normal6 {
   std::size_t pairs = 0;
 };
 
-/// One Gauss-Newton step of (occupancy-weighted) point-to-plane or point-to-point ICP.
+/// One Gauss-Newton step of (occupancy-weighted) point-to-plane or point-to-point ICP. Pairs
+/// are nearest neighbours within `nn_max`; point-to-plane gates on the plane distance `dmax`
+/// (a target point stands for a voxel-grid cell, so the in-plane offset is not an error).
 Normal6 icp_system(const Cloud& src, std::size_t step, const Cloud& tgt,
                    const pcl::KdTreeFLANN<Point>& tree, const Eigen::Matrix4d& T, double dmax,
-                   const RefineConfig& c, double sigma) {
+                   double nn_max, const RefineConfig& c, double sigma) {
   const Eigen::Matrix4f Tf = T.cast<float>();
   const bool weighted = c.method == RefineMethod::kOicp;
-  const float dmax2 = static_cast<float>(dmax * dmax);
+  const auto nn_max2 = static_cast<float>(std::max(nn_max, dmax) * std::max(nn_max, dmax));
+  const auto dmax2 = static_cast<float>(dmax * dmax);
   auto body = [&](const tbb::blocked_range<std::size_t>& r, Normal6 acc) {
     pcl::Indices idx(1);
     std::vector<float> d2(1);
@@ -169,7 +172,8 @@ Normal6 icp_system(const Cloud& src, std::size_t step, const Cloud& tgt,
       const Point& sp = src[s * step];
       Point p;
       p.getVector4fMap() = Tf * sp.getVector4fMap();
-      if (tree.nearestKSearch(p, 1, idx, d2) < 1 || d2[0] > dmax2) continue;
+      if (tree.nearestKSearch(p, 1, idx, d2) < 1) continue;
+      if (d2[0] > (c.point_to_plane ? nn_max2 : dmax2)) continue;
       const Point& q = tgt[idx[0]];
       const Eigen::Vector3d pd = p.getVector3fMap().cast<double>();
       const Eigen::Vector3d diff = pd - q.getVector3fMap().cast<double>();
@@ -177,6 +181,7 @@ Normal6 icp_system(const Cloud& src, std::size_t step, const Cloud& tgt,
       if (c.point_to_plane) {
         const Eigen::Vector3d n = q.getNormalVector3fMap().cast<double>();
         const double r0 = diff.dot(n);
+        if (r0 * r0 > dmax * dmax) continue;
         w /= 1.0 + (r0 * r0) / (sigma * sigma);  // Cauchy-like robust weight
         Eigen::Matrix<double, 6, 1> J;
         J << pd.cross(n), n;
@@ -207,18 +212,42 @@ Normal6 icp_system(const Cloud& src, std::size_t step, const Cloud& tgt,
                               });
 }
 
+/// Full-resolution source points that have a target point within `dmax` under T0: ICP spends
+/// its budget on the overlap only (at 10 % overlap most of a map has no partner).
+Cloud overlap_sample(const Cloud& full, const pcl::KdTreeFLANN<Point>& tree, const Eigen::Matrix4d& T0,
+                     double dmax, std::size_t max_points) {
+  const std::size_t probe_step = std::max<std::size_t>(1, full.size() / (8 * max_points));
+  const Eigen::Matrix4f T = T0.cast<float>();
+  const auto dmax2 = static_cast<float>(dmax * dmax);
+  Cloud kept;
+  pcl::Indices idx(1);
+  std::vector<float> d2(1);
+  for (std::size_t i = 0; i < full.size(); i += probe_step) {
+    Point p;
+    p.getVector4fMap() = T * full[i].getVector4fMap();
+    if (tree.nearestKSearch(p, 1, idx, d2) == 1 && d2[0] <= dmax2) kept.push_back(full[i]);
+  }
+  if (kept.size() <= max_points) return kept;
+  Cloud out;
+  const double stride = static_cast<double>(kept.size()) / static_cast<double>(max_points);
+  for (std::size_t i = 0; i < max_points; ++i) out.push_back(kept[static_cast<std::size_t>(i * stride)]);
+  return out;
+}
+
 Eigen::Matrix4d icp(const PreparedMap::Impl& source, const Cloud::Ptr& target_crop,
                     const Eigen::Matrix4d& T0, const RefineConfig& c, double res) {
   if (target_crop->size() < 10) return T0;
   pcl::KdTreeFLANN<Point> tree;
   tree.setInputCloud(target_crop);
-  const std::size_t step = std::max<std::size_t>(1, source.cloud->size() / c.max_points);
+  // Source: full-resolution voxel centres (not the downsampled cloud), so the result is not
+  // quantised by the describe voxel; target: downsampled points with their local planes.
+  const Cloud src = overlap_sample(*source.full, tree, T0, c.max_correspondence * res, c.max_points);
   Eigen::Matrix4d T = T0;
   const int ramp = std::max(1, c.max_iterations / 3);  // iterations to reach final_correspondence
   for (int it = 0; it < c.max_iterations; ++it) {
     const double f = std::min(1.0, static_cast<double>(it) / ramp);
     const double dmax = (c.max_correspondence + f * (c.final_correspondence - c.max_correspondence)) * res;
-    const Normal6 sys = icp_system(*source.cloud, step, *target_crop, tree, T, dmax, c, dmax / 2.0);
+    const Normal6 sys = icp_system(src, 1, *target_crop, tree, T, dmax, c.max_correspondence * res, c, dmax / 2.0);
     if (sys.pairs < 6) break;
     const Eigen::Matrix<double, 6, 6> A = sys.A + 1e-6 * sys.A.trace() * Eigen::Matrix<double, 6, 6>::Identity();
     const Eigen::Matrix<double, 6, 1> x = -A.ldlt().solve(sys.b);

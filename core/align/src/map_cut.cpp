@@ -29,12 +29,20 @@ void for_each_voxel(const octomap::OcTree& tree, const Eigen::AlignedBox3d& box,
   }
 }
 
+std::unique_ptr<octomap::OcTree> empty_like(const octomap::OcTree& tree, double resolution) {
+  auto out = std::make_unique<octomap::OcTree>(resolution);
+  out->setClampingThresMin(tree.getClampingThresMin());
+  out->setClampingThresMax(tree.getClampingThresMax());
+  out->setOccupancyThres(tree.getOccupancyThres());
+  return out;
+}
+
 }  // namespace
 
 std::unique_ptr<octomap::OcTree> cut_and_move(const octomap::OcTree& tree,
                                               const Eigen::AlignedBox3d& box,
                                               const Eigen::Matrix4d& T) {
-  auto out = std::make_unique<octomap::OcTree>(tree.getResolution());
+  auto out = empty_like(tree, tree.getResolution());
   const Eigen::Matrix3d R = T.topLeftCorner<3, 3>();
   const Eigen::Vector3d t = T.topRightCorner<3, 1>();
   auto put = [&](bool want_occupied) {
@@ -55,7 +63,7 @@ std::unique_ptr<octomap::OcTree> cut_and_move(const octomap::OcTree& tree,
 
 std::unique_ptr<octomap::OcTree> coarsen(const octomap::OcTree& tree, int factor) {
   if (factor < 1) throw std::invalid_argument("coarsen: factor must be >= 1");
-  auto out = std::make_unique<octomap::OcTree>(tree.getResolution() * factor);
+  auto out = empty_like(tree, tree.getResolution() * factor);
   const Eigen::AlignedBox3d all(Eigen::Vector3d::Constant(-1e9), Eigen::Vector3d::Constant(1e9));
   auto put = [&](bool want_occupied) {
     for_each_voxel(tree, all, [&](const Eigen::Vector3d& p, float value, bool occupied) {

@@ -4,6 +4,8 @@
 
 #include <Eigen/Geometry>
 #include <pcl/recognition/cg/geometric_consistency.h>
+// Instantiated here: the precompiled one lives in libpcl_recognition, which pulls in pcl_io and VTK.
+#include <pcl/recognition/impl/cg/geometric_consistency.hpp>
 #include <pcl/registration/ia_ransac.h>
 #include <pcl/registration/sample_consensus_prerejective.h>
 

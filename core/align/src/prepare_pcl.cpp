@@ -98,7 +98,7 @@ Cloud::Ptr preprocess(const Cloud::Ptr& input, const PreprocessConfig& c, double
 /// Free-space votes along +n and -n: the surface faces the side the sensor saw as free.
 int free_votes(const octomap::OcTree& tree, const Point& p, float sign, double res) {
   int votes = 0;
-  for (int step = 1; step <= 3; ++step) {
+  for (int step = 1; step <= 2; ++step) {
     const auto d = static_cast<float>(sign * step * res);
     const octomap::OcTreeNode* node =
         tree.search(p.x + d * p.normal_x, p.y + d * p.normal_y, p.z + d * p.normal_z);

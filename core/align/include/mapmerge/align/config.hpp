@@ -48,7 +48,7 @@ struct SubmodelConfig {
 /// Stage 4: ISS keypoints (Eq. 1-3).
 struct KeypointConfig {
   double salient_radius = 6.0;   ///< support radius of the scatter matrix [x res]
-  double non_max_radius = 4.0;   ///< non-maximum suppression radius [x res]
+  double non_max_radius = 6.0;   ///< non-maximum suppression radius [x res]
   double gamma_21 = 0.975;       ///< upper bound on lambda2/lambda1 (largest first, PCL convention) [ratio]
   double gamma_32 = 0.975;       ///< upper bound on lambda3/lambda2 [ratio]
   int min_neighbors = 5;         ///< minimum support size [points]
@@ -60,7 +60,7 @@ enum class Descriptor { kFpfh, kShot };
 /// Stage 5: local descriptors at the keypoints.
 struct DescribeConfig {
   Descriptor method = Descriptor::kFpfh;  ///< FPFH (33 bins) or SHOT (352 bins, the paper's)
-  double radius = 12.0;          ///< descriptor support radius [x res]
+  double radius = 10.0;          ///< descriptor support radius [x res]
   int threads = 1;               ///< OpenMP threads inside the descriptor estimation
 };
 
@@ -73,7 +73,7 @@ struct MatchConfig {
   int k_nearest = 3;             ///< target candidates per source keypoint in descriptor space [count]
   bool mutual = false;           ///< keep only mutual nearest neighbours (then k_nearest = 1)
   std::size_t max_correspondences = 3000;  ///< cap, best descriptor distance first [count]
-  int iterations = 20000;        ///< RANSAC / SAC-IA / prerejective iterations [count]
+  int iterations = 5000;        ///< RANSAC / SAC-IA / prerejective iterations [count]
   double edge_similarity = 0.9;  ///< prerejection: edge-length ratio of sampled triangles [0..1]
   double min_edge = 6.0;         ///< sampled keypoints at least this far apart [x res]
   double inlier_distance = 5.0;  ///< correspondence inlier distance for hypothesis scoring [x res]
@@ -88,10 +88,10 @@ struct ValidateConfig {
   double d_th = 2.0;             ///< pair distance counted in the fitness, Eq. 7 [x res]
   std::size_t n_th = 100;        ///< fewest pairs for a finite fitness, Eq. 8 [count]
   double min_inlier_fraction = 0.03;  ///< inliers / points of the smaller map, floor [0..1]
-  double max_fitness = 0.8;      ///< accepted only if the fitness is below [x res]
+  double max_fitness = 1.0;      ///< accepted only if the fitness is below [x res]
   double conflict_distance = 3.0;  ///< a point further than this from any occupied point and inside
                                    ///< the other map's known free space contradicts the transform [x res]
-  double min_inlier_share = 0.6;  ///< inliers / (inliers + contradictions) to accept [0..1]
+  double min_inlier_share = 0.9;  ///< inliers / (inliers + contradictions) to accept [0..1]
   double ambiguity_ratio = 0.85;  ///< reject when a distinct hypothesis scores at least this share of the best [0..1]
   double distinct_rotation_deg = 5.0;  ///< hypotheses differing more than this are distinct [deg]
   double distinct_translation = 10.0;  ///< ... or more than this [x res]
@@ -112,7 +112,7 @@ struct RefineConfig {
   double crop_margin = 10.0;     ///< d_m: inflation of the source box when cropping the target [x res]
   double convergence_translation = 0.01;  ///< stop when an update moves less than this [x res]
   double convergence_rotation_deg = 0.01;  ///< ... and rotates less than this [deg]
-  std::size_t max_points = 6000;  ///< source points used by ICP (subsampled) [count]
+  std::size_t max_points = 3000;  ///< source points in the overlap used by ICP (subsampled) [count]
   double ndt_resolution = 8.0;   ///< NDT cell size [x res]
   double ndt_step = 4.0;         ///< NDT More-Thuente step size [x res]
 };
