@@ -4,6 +4,8 @@
 // killed and restarted on the same state is survived and rejoined.
 
 #include <atomic>
+#include <map>
+#include <sstream>
 #include <thread>
 
 #include <gtest/gtest.h>
@@ -96,6 +98,57 @@ TEST_F(ClientServerE2E, RobotsOfBothVendorsAreAlignedAndSurviveAServerRestart) {
   ASSERT_TRUE(r1.wait_for_server(kConnect) && r2.wait_for_server(kConnect)) << server_log();
   ASSERT_TRUE(eventually([&] { return r2.statistics().poses_received > before && aligned(r2); }, kAlignment))
       << server_log();
+}
+
+}  // namespace
+}  // namespace mapmerge
+
+namespace mapmerge {
+namespace {
+
+/// The CLIs as the demo runs them: two mapmerge-robot processes (Fast DDS, Cyclone + zstd) and
+/// mapmerge-listen --until-aligned against the real server; the JSON poses match the truth and
+/// the saved global map holds both robots.
+TEST_F(ClientServerE2E, CliRobotsAndListenAgainstTheServer) {
+  start_server();
+  const std::string domain = std::to_string(test::dds_domain());
+  test::Process r1(test::kBin + "mapmerge-robot", {"--id", "r1", "--map", map_path("r1"), "--domain", domain},
+                   (dir_ / "r1").string());
+  test::Process r2(test::kBin + "mapmerge-robot",
+                   {"--id", "r2", "--map", map_path("r2"), "--domain", domain, "--vendor", "cyclone", "--zstd"},
+                   (dir_ / "r2").string());
+  const std::string global = (dir_ / "global.bt").string();
+  test::Process listen(test::kBin + "mapmerge-listen",
+                       {"--domain", domain, "--json", "--until-aligned", "2", "-o", global, "--timeout", "150"},
+                       (dir_ / "listen").string());
+  ASSERT_EQ(listen.wait(std::chrono::seconds(200)), 0) << listen.err() << server_log();
+
+  std::map<std::string, nlohmann::json> latest;
+  std::istringstream lines(listen.out());
+  for (std::string line; std::getline(lines, line);) {
+    const auto j = nlohmann::json::parse(line);
+    latest[j["robot"]] = j;
+  }
+  for (const char* robot : {"r1", "r2"}) {
+    ASSERT_TRUE(latest.count(robot)) << listen.out();
+    EXPECT_EQ(latest[robot]["status"], "aligned");
+    std::array<double, 16> estimate{};
+    for (int i = 0; i < 16; ++i) estimate[i] = latest[robot]["T_global_robot"][i].get<double>();
+    const auto error = test::pose_error(true_pose(robot), estimate);
+    EXPECT_LT(error.rotation_deg, kMaxRotationErrorDeg) << robot;
+    EXPECT_LT(error.translation_m, kMaxTranslationErrorM) << robot;
+  }
+  const auto saved = read_octree_file(global);
+  const auto map1 = read_octree_file(map_path("r1"));
+  EXPECT_GT(test::occupied_volume(*saved), 1.2 * test::occupied_volume(*map1));
+
+  // Both robots print their pose and stop cleanly on SIGTERM.
+  EXPECT_TRUE(r1.running() && r2.running());
+  r1.signal(SIGTERM);
+  r2.signal(SIGTERM);
+  EXPECT_EQ(r1.wait(std::chrono::seconds(20)), 0) << r1.err();
+  EXPECT_EQ(r2.wait(std::chrono::seconds(20)), 0) << r2.err();
+  EXPECT_NE(r2.out().find("r2: pose aligned"), std::string::npos) << r2.out();
 }
 
 }  // namespace
