@@ -76,7 +76,9 @@ TEST_F(Cli, RobotPublishesAndExitsWhenAligned) {
   }
 }
 
-TEST_F(Cli, ListenPrintsJsonPosesAndSavesTheGlobalMap) {
+class CliListen : public Cli, public ::testing::WithParamInterface<const char*> {};
+
+TEST_P(CliListen, PrintsJsonPosesAndSavesTheGlobalMap) {
   test::FakeServer server(test::dds_domain());
   const auto tree = read_octree_file(kData + "/fr_078_tidyup.bt");
   const double s = std::sqrt(0.5);
@@ -85,7 +87,7 @@ TEST_F(Cli, ListenPrintsJsonPosesAndSavesTheGlobalMap) {
   ASSERT_TRUE(server.publish_pose(test::FakeServer::make_pose("r3", mapmerge::POSE_UNKNOWN, {0, 0, 0}, {0, 0, 0, 1}, 5)));
   ASSERT_TRUE(server.publish_global(encode_map(*tree, Encoding::kOctomapBt), "octomap-bt", 5, {"r1", "r2"}));
   const std::string out = (dir_ / "global.bt").string();
-  test::Process listen(kListen, {"--domain", domain(), "--json", "--until-aligned", "2", "-o", out, "--timeout", "60"},
+  test::Process listen(kListen, {"--domain", domain(), "--vendor", GetParam(), "--json", "--until-aligned", "2", "-o", out, "--timeout", "60"},
                        log("listen"));
   ASSERT_EQ(listen.wait(kExit), 0) << listen.err();
   const auto lines = json_lines(listen.out());
@@ -111,10 +113,21 @@ TEST_F(Cli, ListenPrintsJsonPosesAndSavesTheGlobalMap) {
   EXPECT_EQ(listen.err().find("Writing"), std::string::npos) << listen.err();
 }
 
+INSTANTIATE_TEST_SUITE_P(Vendors, CliListen, ::testing::Values("fastdds", "cyclone"));
+
 TEST_F(Cli, ListenTimesOutWithExitCode3) {
   test::Process listen(kListen, {"--domain", domain(), "--until-aligned", "1", "--timeout", "1"}, log("listen"));
   EXPECT_EQ(listen.wait(kExit), 3) << listen.err();
   EXPECT_NE(listen.err().find("timeout"), std::string::npos) << listen.err();
+}
+
+TEST_F(Cli, RobotNotAlignedInTimeExitsWithCode3) {
+  test::Process robot(kRobot,
+                      {"--id", "r8", "--map", kData + "/geb079.bt", "--domain", domain(), "--exit-when-aligned",
+                       "--timeout", "1"},
+                      log("robot"));
+  EXPECT_EQ(robot.wait(kExit), 3) << robot.err();
+  EXPECT_NE(robot.err().find("not aligned"), std::string::npos) << robot.err();
 }
 
 TEST_F(Cli, RobotStopsCleanlyOnSigterm) {
