@@ -10,6 +10,8 @@ namespace mapmerge::client::detail {
 namespace {
 
 constexpr std::size_t kMaxPoseInbox = 4096;  ///< poses queued for callbacks; oldest dropped beyond
+constexpr std::chrono::milliseconds kRetryDelay{100};  ///< before writing a failed update again
+constexpr std::chrono::seconds kWarningPeriod{5};       ///< at most one write-failure warning per period
 
 TransportConfig transport_config(const Options& options) {
   TransportConfig c;
@@ -77,24 +79,20 @@ PublishResult ClientCore::publish(const octomap::OcTree& tree) {
     result.error = "this client observes only (no robot id): nothing to publish";
     return result;
   }
-  std::uint64_t sequence = 0;
-  {
-    std::lock_guard<std::mutex> lock(state_mutex_);
-    sequence = next_sequence_++;
-  }
   MapMessage message;
   try {
-    message = make_map_message(tree, options_, options_.session_id, sequence);
+    message = make_map_message(tree, options_, options_.session_id, 0);
   } catch (const std::exception& e) {
     result.error = std::string("cannot serialise the map: ") + e.what();
     return result;
   }
-  result.sequence_number = sequence;
   result.bytes = message.data.size();
   result.encoding = message.encoding;
   bool replaced = false;
   {
+    // Numbered when queued, so concurrent publishers never queue a lower number after a higher one.
     std::lock_guard<std::mutex> lock(send_mutex_);
+    message.sequence_number = result.sequence_number = next_sequence_++;
     replaced = outbox_.has_value();
     outbox_ = std::move(message);
   }
@@ -123,7 +121,13 @@ void ClientCore::send_loop() {
     }
     lock.lock();
     sending_ = false;
-    send_cv_.notify_all();  // flush() waits for this; failures are reported by the dispatch thread
+    if (!ok && !outbox_) {
+      // Not written (e.g. the writer's history stayed full for max_block): retry it unless a
+      // newer update replaced it meanwhile. Failures are reported by the dispatch thread.
+      outbox_ = std::move(message);
+      send_cv_.wait_for(lock, kRetryDelay, [this] { return stop_.load(); });
+    }
+    send_cv_.notify_all();  // flush() waits for this
   }
 }
 
@@ -286,8 +290,12 @@ void ClientCore::report_write_failures() {
     std::lock_guard<std::mutex> lock(state_mutex_);
     failures = stats_.write_failures;
   }
-  if (failures <= failures_reported_) return;
+  const auto now = std::chrono::steady_clock::now();
+  if (failures <= failures_reported_ || (failures_reported_ > 0 && now - last_failure_warning_ < kWarningPeriod)) {
+    return;
+  }
   failures_reported_ = failures;
+  last_failure_warning_ = now;
   warn("map update could not be written (" + std::to_string(failures) + " failures so far)");
 }
 

@@ -71,7 +71,6 @@ class ClientCore {
   std::map<std::string, Pose> poses_;
   std::shared_ptr<const GlobalMap> global_map_;
   Statistics stats_;
-  std::uint64_t next_sequence_ = 1;
 
   /// The callbacks. Set through the inbox (`pending`) and installed by the dispatch thread,
   /// which replays the current state to a new callback: every pose reaches it exactly once.
@@ -94,12 +93,14 @@ class ClientCore {
   bool callbacks_pending_ = false;
   bool was_connected_ = false;                  // dispatch thread only
   std::uint64_t failures_reported_ = 0;         // dispatch thread only
+  std::chrono::steady_clock::time_point last_failure_warning_;  // dispatch thread only
 
   // Send thread outbox, guarded by send_mutex_.
   std::mutex send_mutex_;
   std::condition_variable send_cv_;
   std::optional<MapMessage> outbox_;  // latest wins
   bool sending_ = false;
+  std::uint64_t next_sequence_ = 1;
 
   std::atomic<bool> stop_{false};
   std::atomic<std::uint64_t> nonce_{0};

@@ -254,6 +254,35 @@ TEST_P(ClientVsFakeServer, LosingTheServerNeitherCrashesNorBlocks) {
   EXPECT_TRUE(eventually([&] { return connected == 2; }));
 }
 
+TEST_P(ClientVsFakeServer, ConcurrentPublishersNeverSendANumberBackwards) {
+  test::FakeServer server(test::dds_domain());
+  server.listen_to("r7");
+  auto robot = make("r7");
+  octomap::OcTree tree(0.1);
+  tree.updateNode(octomap::point3d(1.0f, 1.0f, 1.0f), true);
+  constexpr int kPerThread = 25;
+  std::vector<std::thread> publishers;
+  for (int t = 0; t < 2; ++t) {
+    publishers.emplace_back([&] {
+      for (int i = 0; i < kPerThread; ++i) ASSERT_TRUE(robot->publish(tree).queued);
+    });
+  }
+  for (auto& t : publishers) t.join();
+  ASSERT_TRUE(robot->flush(10s));
+  // Keep-last-1 state topic: the server may miss intermediate updates, never see one go back.
+  std::uint64_t last = 0;
+  while (last < 2 * kPerThread) {
+    const auto update = server.take_map("r7", kDelivery);
+    ASSERT_TRUE(update) << "last sequence number seen: " << last;
+    EXPECT_GT(update->sequence_number(), last);
+    last = update->sequence_number();
+  }
+  EXPECT_EQ(last, std::uint64_t(2 * kPerThread));
+  const auto stats = robot->statistics();
+  EXPECT_EQ(stats.updates_published + stats.updates_coalesced, std::uint64_t(2 * kPerThread));
+  EXPECT_EQ(stats.write_failures, 0u);
+}
+
 TEST_P(ClientVsFakeServer, InvalidGlobalMapIsRejectedWithAWarning) {
   test::FakeServer server(test::dds_domain());
   auto robot = make("r6");
