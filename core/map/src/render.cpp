@@ -147,8 +147,10 @@ void draw_scale_bar(Canvas& canvas, const Panel& panel) {
   canvas.text(x, y, label, 2, kBlack);
 }
 
+using ViewFn = std::function<Eigen::Vector2d(const Eigen::Vector3d&)>;
+
 void draw_frames(Canvas& canvas, const Panel& panel, const std::vector<RobotFrame>& frames,
-                 double length, const std::function<Eigen::Vector2d(const Eigen::Vector3d&)>& view) {
+                 double length, const ViewFn& view) {
   static const Rgb axis_colour[] = {{230, 30, 30}, {20, 170, 20}, {30, 60, 230}};
   for (const RobotFrame& f : frames) {
     const Eigen::Vector3d o = f.T_global_robot.topRightCorner<3, 1>();
@@ -309,8 +311,8 @@ Image render_map(const octomap::OcTree& tree, const RenderConfig& config, const 
   detail::draw_top_down(canvas, layout.top, scene.occupied, scene.free);
   detail::draw_oblique(canvas, layout.oblique, camera, scene.occupied);
   const double axis = 0.08 * (scene.hi - scene.lo).head<2>().maxCoeff();
-  for (const auto& [panel, view] : {std::make_pair(&layout.top, std::function<Eigen::Vector2d(const Eigen::Vector3d&)>(top_view)),
-                                    std::make_pair(&layout.oblique, std::function<Eigen::Vector2d(const Eigen::Vector3d&)>(oblique_view))}) {
+  const std::pair<const Panel*, ViewFn> views[] = {{&layout.top, top_view}, {&layout.oblique, oblique_view}};
+  for (const auto& [panel, view] : views) {
     canvas.clip(panel->x, panel->y, panel->w, panel->h);
     draw_frames(canvas, *panel, cfg.frames, axis, view);
     canvas.unclip();
