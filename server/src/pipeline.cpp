@@ -16,8 +16,8 @@ double seconds_since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
-/// How a global search remembers a failed partner: its id at its map revision.
-std::string tried_key(const RobotRecord& other) { return other.robot_id + "#" + std::to_string(other.map_revision); }
+/// How a global search remembers a failed partner (until the searching robot's map changes).
+std::string tried_key(const RobotRecord& other) { return other.robot_id; }
 
 }  // namespace
 
@@ -72,14 +72,15 @@ void Pipeline::place(const std::string& robot) {
   if (!rec || !rec->tree) return;
   const std::string wanted = config_.merge.reference.empty() ? robot : config_.merge.reference;
   const std::string reference = registry_.claim_reference(wanted);
+  const bool was_aligned = registry_.poses().count(robot) != 0;
   if (robot == reference) {
-    spdlog::info("robot {} defines the global frame", robot);
-    on_new_alignment(robot);
+    if (!was_aligned) spdlog::info("robot {} defines the global frame", robot);
+    on_new_alignment(robot, !was_aligned);
     return;
   }
-  if (registry_.poses().count(robot) != 0) {
+  if (was_aligned) {
     if (config_.merge.refine_known) refine_known(*rec);
-    on_new_alignment(robot);
+    on_new_alignment(robot, false);
     return;
   }
   search_unknown(*rec);
@@ -120,7 +121,7 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
     registry_.mark_tried(rec.robot_id, rec.map_revision, tried_key(*other));
     if (res.accepted) {
       registry_.put_edge(Edge{other->robot_id, rec.robot_id, res.T_target_source, res.fitness});
-      on_new_alignment(rec.robot_id);
+      on_new_alignment(rec.robot_id, true);
       return;
     }
   }
@@ -141,7 +142,7 @@ void Pipeline::refine_known(const RobotRecord& rec) {
   }
 }
 
-void Pipeline::on_new_alignment(const std::string& robot) {
+void Pipeline::on_new_alignment(const std::string& robot, bool joined) {
   if (store_ != nullptr) {
     try {
       store_->save_alignment(registry_.reference(), registry_.edges());
@@ -150,6 +151,7 @@ void Pipeline::on_new_alignment(const std::string& robot) {
     }
   }
   if (hooks_.changed) hooks_.changed();
+  if (!joined) return;  // the aligned group did not grow: nothing new to try the others against
   const auto poses = registry_.poses();
   for (const auto& r : registry_.all()) {
     if (r->robot_id != robot && r->tree && poses.count(r->robot_id) == 0 && hooks_.retry) hooks_.retry(r->robot_id);

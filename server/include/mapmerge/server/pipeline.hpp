@@ -51,7 +51,9 @@ class Pipeline {
   void refine_known(const RobotRecord& robot);
   void search_unknown(const RobotRecord& robot);
   std::shared_ptr<const align::PreparedMap> prepared(const std::string& robot);
-  void on_new_alignment(const std::string& robot);
+  /// Persists alignments, asks for a republish and, when `joined` (the aligned group grew),
+  /// a retry of every unaligned robot.
+  void on_new_alignment(const std::string& robot, bool joined);
   void report(MergeReportOut report);
 
   const ServerConfig& config_;

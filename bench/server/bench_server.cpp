@@ -1,0 +1,173 @@
+// End-to-end bench of a real mapmerge-server on loopback: N robots with maps cut from one real
+// map publish at once; an operator participant measures the time until the global map holds
+// them (first alignment), then the latency of incremental updates of known robots (publish ->
+// updated global map received). Prints server CPU time and peak RSS per robot.
+#include <algorithm>
+#include <cstdio>
+#include <fstream>
+#include <numeric>
+#include <random>
+#include <sstream>
+
+#include <CLI/CLI.hpp>
+
+#include "fleet.hpp"
+#include "mapmerge/align/map_cut.hpp"
+#include "mapmerge/map/map_codec.hpp"
+#include "server_process.hpp"
+
+namespace mt = mapmerge::test;
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+struct Options {
+  std::vector<int> robots{2, 4, 8, 16};
+  std::string map = "geb079.bt";
+  int domain = 97;
+  int updates = 6;
+  int timeout_s = 900;
+  double strip_share = 0.45;  ///< each robot sees this share of the map's length
+};
+
+struct Result {
+  int n = 0, aligned = 0;
+  double first_global_s = 0, all_aligned_s = -1, map_kb_per_robot = 0;
+  std::vector<double> incremental_ms;
+  double cpu_s = 0, peak_rss_mb = 0, max_rot_deg = 0, max_trans_m = 0;
+};
+
+double secs(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+std::vector<mt::RobotMap> make_robots(const octomap::OcTree& world, int n, double share, std::mt19937& rng) {
+  double x0, y0, z0, x1, y1, z1;
+  world.getMetricMin(x0, y0, z0);
+  world.getMetricMax(x1, y1, z1);
+  const double length = std::max((x1 - x0) * share, 2.0 * (x1 - x0) / (n + 1)), step = n > 1 ? ((x1 - x0) - length) / (n - 1) : 0.0;
+  std::uniform_real_distribution<double> yaw(-180, 180), tilt(-3, 3), off(-5, 5);
+  std::vector<mt::RobotMap> robots;
+  for (int i = 0; i < n; ++i) {
+    const Eigen::AlignedBox3d box(Eigen::Vector3d(x0 + i * step, y0, z0), Eigen::Vector3d(x0 + i * step + length, y1, z1));
+    const Eigen::Matrix4d T = i == 0 ? Eigen::Matrix4d::Identity()
+                                     : mapmerge::align::make_transform(off(rng), off(rng), 0, tilt(rng), tilt(rng), yaw(rng));
+    robots.push_back(mt::cut_robot_map(world, "r" + std::to_string(i + 1), box, T));
+  }
+  return robots;
+}
+
+/// utime + stime [s] and VmHWM [MB] of a live process.
+std::pair<double, double> usage(pid_t pid) {
+  std::ifstream stat("/proc/" + std::to_string(pid) + "/stat");
+  std::string s((std::istreambuf_iterator<char>(stat)), std::istreambuf_iterator<char>());
+  std::istringstream rest(s.substr(s.rfind(')') + 2));
+  std::vector<std::string> f((std::istream_iterator<std::string>(rest)), std::istream_iterator<std::string>());
+  const double ticks = static_cast<double>(sysconf(_SC_CLK_TCK));
+  const double cpu = f.size() > 12 ? (std::stod(f[11]) + std::stod(f[12])) / ticks : 0.0;
+  std::ifstream status("/proc/" + std::to_string(pid) + "/status");
+  double hwm_mb = 0;
+  for (std::string line; std::getline(status, line);) {
+    if (line.rfind("VmHWM:", 0) == 0) hwm_mb = std::stod(line.substr(6)) / 1024.0;
+  }
+  return {cpu, hwm_mb};
+}
+
+int aligned_count(const mt::FleetListener& op) {
+  int n = 0;
+  for (const auto& [id, p] : op.poses()) n += p.status == 1 ? 1 : 0;
+  return n;
+}
+
+void first_alignment(const Options& o, Result& r, mt::FleetListener& op, const std::vector<mt::RobotMap>& robots,
+                     std::vector<std::unique_ptr<mt::RobotPublisher>>& pubs) {
+  const auto t0 = Clock::now();
+  for (std::size_t i = 0; i < robots.size(); ++i) pubs[i]->publish(*robots[i].tree, "s1", 1);
+  op.wait_for([&] { return op.globals_received() > 0; }, std::chrono::seconds(o.timeout_s));
+  r.first_global_s = secs(t0);
+  const bool all = op.wait_for([&] {
+    return op.global().contributors.size() == robots.size();
+  }, std::chrono::seconds(o.timeout_s));
+  if (all) r.all_aligned_s = secs(t0);
+  r.aligned = aligned_count(op);
+  for (std::size_t i = 1; i < robots.size(); ++i) {
+    const auto poses = op.poses();
+    auto it = poses.find(robots[i].id);
+    if (it == poses.end() || it->second.status != 1) continue;
+    const Eigen::Matrix4d truth = robots[0].T_robot_world * robots[i].T_robot_world.inverse();
+    r.max_rot_deg = std::max(r.max_rot_deg, mt::rotation_error_deg(truth, it->second.T_global_robot));
+    r.max_trans_m = std::max(r.max_trans_m, mt::translation_error_m(truth, it->second.T_global_robot));
+  }
+}
+
+void incremental(const Options& o, Result& r, mt::FleetListener& op, const std::vector<mt::RobotMap>& robots,
+                 std::vector<std::unique_ptr<mt::RobotPublisher>>& pubs) {
+  const auto global = op.global();
+  std::vector<std::size_t> known;
+  for (std::size_t i = 0; i < robots.size(); ++i) {
+    if (global.contributor_sequence.count(robots[i].id)) known.push_back(i);
+  }
+  if (known.empty()) return;
+  for (int u = 0; u < o.updates; ++u) {
+    const std::size_t i = known[static_cast<std::size_t>(u) % known.size()];
+    const std::uint64_t seq = 2 + static_cast<std::uint64_t>(u);
+    const auto t0 = Clock::now();
+    pubs[i]->publish(*robots[i].tree, "s1", seq);
+    if (op.wait_for([&] { return op.global().contributor_sequence[robots[i].id] == seq; }, std::chrono::seconds(120))) {
+      r.incremental_ms.push_back(secs(t0) * 1000.0);
+    }
+  }
+}
+
+Result run(const Options& o, int n) {
+  Result r;
+  r.n = n;
+  const auto world = mt::load_data_map(o.map);
+  std::mt19937 rng(1234 + static_cast<unsigned>(n));
+  const auto robots = make_robots(*world, n, o.strip_share, rng);
+  double bytes = 0;
+  for (const auto& rb : robots) bytes += static_cast<double>(mapmerge::encode_map(*rb.tree, mapmerge::Encoding::kOctomapBt).size());
+  r.map_kb_per_robot = bytes / n / 1024.0;
+  const std::string dir = mt::temp_dir("bench_" + std::to_string(n));
+  std::ofstream(dir + "/bench.yaml") << "publish: {min_interval_s: 0.0}\nmerge: {threads: 2}\n";
+  mt::ServerProcess server({"--domain", std::to_string(o.domain), "--state-dir", dir + "/state", "--config",
+                            dir + "/bench.yaml", "--reference", "r1", "--log-level", "info"},
+                           dir + "/server.log");
+  mt::FleetListener op(o.domain);
+  std::vector<std::unique_ptr<mt::RobotPublisher>> pubs;
+  for (const auto& rb : robots) pubs.push_back(std::make_unique<mt::RobotPublisher>(o.domain, rb.id));
+  std::this_thread::sleep_for(std::chrono::seconds(1));  // discovery settles
+  first_alignment(o, r, op, robots, pubs);
+  incremental(o, r, op, robots, pubs);
+  std::tie(r.cpu_s, r.peak_rss_mb) = usage(server.pid());
+  server.kill(SIGTERM);
+  return r;
+}
+
+void print(const Result& r) {
+  auto v = r.incremental_ms;
+  std::sort(v.begin(), v.end());
+  const double med = v.empty() ? -1 : v[v.size() / 2], mx = v.empty() ? -1 : v.back();
+  std::printf("| %2d | %2d | %6.1f | %7.1f | %6.0f | %6.0f | %5.2f | %4.2f | %7.1f | %6.0f | %5.1f | %4.1f |\n", r.n,
+              r.aligned, r.first_global_s, r.all_aligned_s, med, mx, r.max_rot_deg, r.max_trans_m, r.cpu_s,
+              r.peak_rss_mb, r.peak_rss_mb / r.n, r.map_kb_per_robot / 1024.0);
+  std::fflush(stdout);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"mapmerge-server end-to-end bench (loopback, real server process)"};
+  Options o;
+  app.add_option("--robots", o.robots, "fleet sizes")->delimiter(',');
+  app.add_option("--map", o.map, "map in data/");
+  app.add_option("--domain", o.domain, "DDS domain")->check(CLI::Range(0, 101));
+  app.add_option("--updates", o.updates, "incremental updates measured per fleet size");
+  app.add_option("--timeout", o.timeout_s, "seconds to wait for the whole fleet to be merged");
+  app.add_option("--strip-share", o.strip_share, "share of the map's length each robot sees");
+  CLI11_PARSE(app, argc, argv);
+  std::printf("map %s; columns: robots | aligned | first global [s] | all merged [s] | incremental median/max [ms] | "
+              "max rot err [deg] | max trans err [m] | server CPU [s] | peak RSS [MB] | RSS/robot [MB] | map/robot [MB]\n",
+              o.map.c_str());
+  std::printf("|  N | al | first  | all     | incr50 | incrMx | rot   | tr   | cpu     | rss    | rss/r | map  |\n");
+  for (int n : o.robots) print(run(o, n));
+  return 0;
+}
