@@ -30,6 +30,10 @@ void add_dds_flags(CLI::App& app, DdsFlags& flags) {
   app.add_option("--vendor", flags.vendor, "DDS implementation of this program")
       ->check(CLI::IsMember({"fastdds", "cyclone"}))
       ->capture_default_str();
+  app.add_option("--keystore", flags.keystore,
+                 "DDS Security keystore (scripts/make-keystore); default: ROS_SECURITY_KEYSTORE when "
+                 "ROS_SECURITY_ENABLE=true, else security off");
+  app.add_option("--enclave", flags.enclave, "enclave in the keystore (default: the robot id)");
   app.add_flag("-v,--verbose", flags.verbose, "show the DDS and OctoMap libraries' own messages on stderr");
 }
 
@@ -45,6 +49,8 @@ client::Options client_options(const DdsFlags& flags) {
   o.domain = flags.domain;
   o.profile = flags.profile;
   o.discovery_server = flags.discovery_server;
+  o.keystore = flags.keystore;
+  o.enclave = flags.enclave;
   return o;
 }
 

@@ -28,6 +28,8 @@ struct DdsFlags {
   std::string profile = "local";
   std::string discovery_server;
   std::string vendor = "fastdds";
+  std::string keystore;
+  std::string enclave;
   bool verbose = false;
 };
 void add_dds_flags(CLI::App& app, DdsFlags& flags);

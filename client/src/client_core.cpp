@@ -25,6 +25,7 @@ TransportConfig transport_config(const Options& options) {
   c.robot_id = options.robot_id;
   c.receive_global_map = options.receive_global_map;
   c.max_block = options.max_block;
+  c.security = security_options(options);
   c.participant_name = "mapmerge-client/" + (options.robot_id.empty() ? std::string("observer") : options.robot_id);
   return c;
 }

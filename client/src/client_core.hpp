@@ -14,6 +14,9 @@
 
 namespace mapmerge::client::detail {
 
+/// The DDS Security identity of `options` (explicit keystore, else ROS 2's environment, else off).
+wire::SecurityOptions security_options(const Options& options);
+
 /// This process's session id: 16 random hex digits, drawn once per process start.
 const std::string& process_session_id();
 

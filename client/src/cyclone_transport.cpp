@@ -81,7 +81,7 @@ int matched_writers(dds_entity_t reader) {
 class CycloneTransport final : public Transport {
  public:
   CycloneTransport(const TransportConfig& config, TransportEvents events)
-      : events_(std::move(events)), participant_(config.domain, config.profile) {
+      : events_(std::move(events)), participant_(config.domain, config.profile, config.security) {
     auto& p = participant_;
     if (!config.robot_id.empty()) {
       map_writer_ = create_writer(p.topic(&mapmerge_MapUpdate_desc, wire::map_topic(config.robot_id)),
@@ -193,7 +193,7 @@ std::unique_ptr<Transport> make_cyclone_transport(const TransportConfig& config,
   }
   try {
     return std::make_unique<CycloneTransport>(config, std::move(events));
-  } catch (const wire::CycloneError& e) {
+  } catch (const std::exception& e) {  // wire::CycloneError, or std::invalid_argument from security
     throw ClientError(std::string("Cyclone DDS: ") + e.what());
   }
 }

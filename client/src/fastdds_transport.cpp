@@ -100,6 +100,7 @@ class FastddsTransport final : public Transport {
     options.domain = config.domain;
     options.profile = config.profile;
     options.name = config.participant_name;
+    options.security = config.security;
     participant_ = std::make_unique<wire::FastddsParticipant>(options);
     auto& p = *participant_;
     if (!config.robot_id.empty()) {
@@ -182,7 +183,7 @@ class FastddsTransport final : public Transport {
 std::unique_ptr<Transport> make_fastdds_transport(const TransportConfig& config, TransportEvents events) {
   try {
     return std::make_unique<FastddsTransport>(config, std::move(events));
-  } catch (const wire::DdsError& e) {
+  } catch (const std::exception& e) {  // wire::DdsError, or std::invalid_argument from security
     throw ClientError(std::string("Fast DDS: ") + e.what());
   }
 }

@@ -23,6 +23,12 @@ std::string random_hex(int digits) {
 
 }  // namespace
 
+wire::SecurityOptions security_options(const Options& options) {
+  const std::string enclave = options.enclave.empty() ? options.robot_id : options.enclave;
+  if (options.keystore.empty()) return wire::SecurityOptions::from_environment(enclave);
+  return wire::SecurityOptions{options.keystore, enclave};
+}
+
 const std::string& process_session_id() {
   static const std::string id = random_hex(16);
   return id;
@@ -88,6 +94,15 @@ std::string check_options(const Options& options) {
     wire::ProfileSpec::parse(options.profile);
   } catch (const std::invalid_argument& e) {
     return e.what();
+  }
+  const wire::SecurityOptions security = detail::security_options(options);
+  if (security.enabled()) {
+    if (security.enclave.empty()) return "DDS Security needs an enclave (an observer has no robot id to use)";
+    try {
+      security.files();
+    } catch (const std::invalid_argument& e) {
+      return std::string("DDS Security: ") + e.what();
+    }
   }
   return {};
 }

@@ -11,6 +11,7 @@
 
 #include "mapmerge/client/client.hpp"
 #include "mapmerge/wire/profile.hpp"
+#include "mapmerge/wire/security.hpp"
 
 namespace mapmerge::client::detail {
 
@@ -45,6 +46,7 @@ struct TransportConfig {
   bool receive_global_map = true;
   std::string participant_name;
   std::chrono::milliseconds max_block{200};  ///< max blocking time of our writers
+  wire::SecurityOptions security;            ///< DDS Security identity; default: off
 };
 
 /// Called on DDS threads: must only hand the data over, never block.

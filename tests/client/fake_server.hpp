@@ -21,10 +21,12 @@ namespace mapmerge::test {
 class FakeServer {
  public:
   /// `discovery_server`: "HOST:PORT" of a Fast DDS discovery server; empty: simple discovery.
-  explicit FakeServer(int domain, const std::string& discovery_server = "") {
+  /// `security`: the server's DDS Security identity; default: off.
+  explicit FakeServer(int domain, const std::string& discovery_server = "", wire::SecurityOptions security = {}) {
     wire::ParticipantOptions o;
     o.domain = domain;
     o.profile.discovery_server = discovery_server;
+    o.security = std::move(security);
     o.name = "fake-mapmerge-server";
     participant_ = std::make_unique<wire::FastddsParticipant>(o);
     auto& p = *participant_;

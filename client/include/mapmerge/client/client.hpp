@@ -93,6 +93,9 @@ struct Options {
   std::string profile = "local";  ///< "local" (127.0.0.1 only), "default" (a real fleet) or FILE.xml
   std::string discovery_server;   ///< Fast DDS discovery server "HOST:PORT"; empty: none
                                   ///< (Fast DDS still honours ROS_DISCOVERY_SERVER)
+  std::string keystore;         ///< DDS Security keystore (scripts/make-keystore, SROS2 layout);
+                                ///< empty: ROS_SECURITY_KEYSTORE if ROS_SECURITY_ENABLE=true, else off
+  std::string enclave;          ///< enclave in the keystore; empty: ROS_SECURITY_ENCLAVE, else the robot id
   std::string frame_id;         ///< the robot's map frame; empty: "<robot_id>/map"
   std::string session_id;       ///< empty: this process's random session id (new per start)
   bool zstd = false;            ///< compress map updates ("octomap-bt+zstd") instead of "octomap-bt"
@@ -200,7 +203,9 @@ class Client {
 
 /// The same client over Cyclone DDS (C API): proves a Cyclone-based robot stack, ROS 2's
 /// default vendor on many distributions, talks to the Fast DDS server. Options::discovery_server
-/// is not supported (Cyclone has no Fast DDS discovery server client).
+/// is not supported (Cyclone has no Fast DDS discovery server client). With DDS Security, all
+/// Cyclone clients of one process and domain must use the same identity (Cyclone DDS 0.10
+/// applies the first participant's).
 class CycloneClient : public Client {
  public:
   explicit CycloneClient(client::Options options);
