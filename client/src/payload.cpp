@@ -101,7 +101,7 @@ std::string check_options(const Options& options) {
     try {
       security.files();
     } catch (const std::invalid_argument& e) {
-      return std::string("DDS Security: ") + e.what();
+      return e.what();
     }
   }
   return {};
