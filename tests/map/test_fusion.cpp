@@ -241,6 +241,18 @@ TEST(Fusion, NonRigidTransformIsRejectedAndTargetUntouched) {
   EXPECT_THROW(fuse_maps({{source.get(), scale}}, 0.08), MapError);
 }
 
+TEST(Fusion, SourceWithAHugeLeafIsRefusedBeforeAnyWork) {
+  // A valid two-byte map: one free leaf 1.6 km wide. Rotated, it would touch ~10^10 voxels.
+  const DecodeResult huge = decode_tree_body("OcTree", 0.05, true, {0x01, 0x00}, DecodeLimits{});
+  ASSERT_TRUE(huge.ok()) << huge.reason;
+  auto target = test::load("geb079.bt");
+  const std::size_t before = target->size();
+  const FuseResult r = fuse_into(*target, *huge.tree, pose(0.4, Eigen::Vector3d(1, 2, 0)), FuseConfig{});
+  EXPECT_FALSE(r.ok);
+  EXPECT_NE(r.reason.find("max_work"), std::string::npos) << r.reason;
+  EXPECT_EQ(target->size(), before);
+}
+
 TEST(Fusion, FuseMapsRecordsWhichRobotContributedEachVoxel) {
   const auto original = test::load("geb079.bt");
   double min_x = 0, min_y = 0, min_z = 0, max_x = 0, max_y = 0, max_z = 0;

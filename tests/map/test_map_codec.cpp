@@ -240,6 +240,18 @@ TEST(Hostile, AllOnesBodyThatWouldOverflowTheStackIsRejectedAsTooDeep) {
   EXPECT_EQ(decode_bt(file).error, DecodeError::kTooDeep);
 }
 
+TEST(Hostile, HugeOccupiedLeafIsRejected) {
+  // Two bytes: the root's first child is one occupied leaf 1.6 km wide (8^15 voxels at 5 cm),
+  // which every consumer expanding pruned leaves (to_points, render) would choke on.
+  const DecodeResult r = decode_tree_body("OcTree", 0.05, true, {0x02, 0x00}, DecodeLimits{});
+  EXPECT_EQ(r.error, DecodeError::kOccupiedTooLarge) << r.reason;
+  // The same as a huge free leaf is a valid map (fusion bounds its own work, see test_fusion).
+  EXPECT_TRUE(decode_tree_body("OcTree", 0.05, true, {0x01, 0x00}, DecodeLimits{}).ok());
+  DecodeLimits limits;
+  limits.max_occupied_voxels = 100000;
+  EXPECT_EQ(decode_bt(file_bytes("geb079.bt"), limits).error, DecodeError::kOccupiedTooLarge);
+}
+
 TEST(Hostile, InnerNodeWithoutChildrenIsRejected) {
   // Root: child 0 is an inner node (code 3); that node's record says it has no children.
   const DecodeResult r = decode_tree_body("OcTree", 0.05, true, {0x03, 0x00, 0x00, 0x00}, {});

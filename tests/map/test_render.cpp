@@ -6,6 +6,7 @@
 
 #include "map_test_util.hpp"
 #include "mapmerge/map/fusion.hpp"
+#include "mapmerge/map/map_codec.hpp"
 #include "mapmerge/map/render.hpp"
 
 namespace mapmerge {
@@ -68,6 +69,21 @@ TEST(Render, OccupiedRegionsDifferFromTheBackground) {
   const octomap::OcTree empty(0.1);
   const Image blank = render_map(empty, config, nullptr);
   EXPECT_EQ(count_coloured(blank, 0, blank.width), 0U);  // no voxels, no height legend
+}
+
+TEST(Render, HugeOccupiedLeafIsDrawnWithoutExpandingIt) {
+  // An occupied leaf at depth 8, 256 voxels wide (16.7 M voxels, inside the decode limits), as a
+  // pruned map may hold: drawn as one cube, not as 16.7 M splats.
+  std::vector<std::uint8_t> body;
+  for (int depth = 0; depth < 7; ++depth) body.insert(body.end(), {0x03, 0x00});
+  body.insert(body.end(), {0x02, 0x00});
+  const DecodeResult big = decode_tree_body("OcTree", 0.1, true, body, DecodeLimits{});
+  ASSERT_TRUE(big.ok()) << big.reason;
+  RenderConfig config;
+  config.width = 800;
+  config.height = 600;
+  const Image image = render_map(*big.tree, config, nullptr);
+  EXPECT_GT(count_coloured(image, 0, image.width), 10000U);
 }
 
 TEST(Render, RealMapFillsBothViews) {

@@ -152,6 +152,17 @@ void add_votes(const KeyVotes& votes, detail::TreeWriter& writer, Provenance* pr
   }
 }
 
+/// Upper bound of the target voxel visits fusing `source` costs (see FuseConfig::max_work).
+double estimate_work(const octomap::OcTree& source, double target_res, bool fuse_free) {
+  double work = 0.0;
+  for (auto it = source.begin_leafs(), end = source.end_leafs(); it != end; ++it) {
+    if (!fuse_free && !source.isNodeOccupied(*it)) continue;
+    const double n = std::max(1.0, std::ceil(it.getSize() / target_res));
+    work += n <= 4 ? (n + 1) * (n + 1) * (n + 1) : 27 * (n + 1) * (n + 1);
+  }
+  return work;
+}
+
 }  // namespace
 
 FuseResult fuse_into(octomap::OcTree& target, const octomap::OcTree& source,
@@ -166,6 +177,12 @@ FuseResult fuse_into(octomap::OcTree& target, const octomap::OcTree& source,
   result.reason = check_rigid(T_target_source, config.rigid_tolerance);
   if (!result.reason.empty()) return result;
   const double res = target.getResolution();
+  const double work = estimate_work(source, res, config.fuse_free);
+  if (work > config.max_work) {
+    result.reason = "source would cost ~" + std::to_string(static_cast<long long>(work)) +
+                    " voxel visits, more than max_work (huge pruned leaves?)";
+    return result;
+  }
   if (provenance != nullptr) {
     provenance->resolution = res;
     provenance->owner.reserve(provenance->owner.size() + source.getNumLeafNodes() / 2);

@@ -62,6 +62,11 @@ DecodeResult decode_body(double res, bool binary, const std::uint8_t* body, std:
                     "header claims " + std::to_string(*claimed_nodes) + " nodes, body holds " +
                         std::to_string(scan.num_nodes));
   }
+  if (scan.occupied_voxels > limits.max_occupied_voxels) {
+    return rejected(DecodeError::kOccupiedTooLarge,
+                    std::to_string(scan.occupied_voxels) + " occupied full-resolution voxels, limit " +
+                        std::to_string(limits.max_occupied_voxels));
+  }
   DecodeResult result;
   result.tree = std::make_unique<octomap::OcTree>(res);
   if (scan.num_nodes == 0 || scan.root_only) {
@@ -149,6 +154,7 @@ const char* to_string(DecodeError error) {
     case DecodeError::kTooDeep: return "too_deep";
     case DecodeError::kMalformedTree: return "malformed_tree";
     case DecodeError::kBadValue: return "bad_value";
+    case DecodeError::kOccupiedTooLarge: return "occupied_too_large";
   }
   return "?";
 }

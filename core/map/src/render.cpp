@@ -24,7 +24,8 @@ const Rgb kUnattributed{150, 150, 150};
 constexpr int kMargin = 16;
 constexpr int kTitleBand = 64;
 constexpr int kLegendBand = 84;
-constexpr int kPanelPad = 40;  ///< free border inside each panel [px]
+constexpr int kPanelPad = 40;
+constexpr float kMaxExpandedLeaf = 16.0F;  ///< occupied leaves wider than this many voxels stay whole  ///< free border inside each panel [px]
 
 /// Viridis-like ramp, t in [0, 1].
 Rgb height_colour(double t) {
@@ -103,6 +104,14 @@ Scene collect(const octomap::OcTree& tree, const RenderConfig& config, const Pro
     const Eigen::Vector3f c(it.getX(), it.getY(), it.getZ());
     if (!tree.isNodeOccupied(*it)) {
       if (config.show_free) scene.free.push_back({c, size, {}});
+      continue;
+    }
+    // Occupied leaves are drawn voxel by voxel (provenance is per voxel), but a huge pruned leaf
+    // is drawn whole: its cost must not grow with its volume.
+    if (size > kMaxExpandedLeaf * res) {
+      scene.occupied.push_back({c, size, {}});
+      scene.lo = scene.lo.cwiseMin((c.array() - 0.5F * size).matrix().cast<double>());
+      scene.hi = scene.hi.cwiseMax((c.array() + 0.5F * size).matrix().cast<double>());
       continue;
     }
     const int n = static_cast<int>(std::lround(size / res));

@@ -76,10 +76,12 @@ TreeScan scan_binary_body(const std::uint8_t* data, std::size_t size, std::size_
   // 3 inner node whose own two bytes follow (depth-first, in child order).
   auto read_node = [](const std::uint8_t* p, int depth, std::size_t pos, std::uint32_t& children,
                       std::uint32_t& inner, TreeScan& scan) {
+    const std::uint64_t child_voxels = std::uint64_t{1} << (3 * (kTreeDepth - 1 - depth));
     for (int i = 0; i < 8; ++i) {
       const unsigned code = (p[i / 4] >> (2 * (i % 4))) & 3U;
       children += code != 0;
       inner += code == 3;
+      if (code == 2) scan.occupied_voxels += child_voxels;  // pruned leaves count in full
     }
     if (children == 0 && depth > 0) {
       scan = fail(DecodeError::kMalformedTree, "inner node without children" + at(pos, depth));
@@ -103,6 +105,9 @@ TreeScan scan_full_body(const std::uint8_t* data, std::size_t size, std::size_t 
     }
     for (int i = 0; i < 8; ++i) children += (p[4] >> i) & 1U;
     followers = children;
+    if (children == 0 && depth > 0 && value >= 0.0F) {  // an occupied leaf (OctoMap's threshold)
+      scan.occupied_voxels += std::uint64_t{1} << (3 * (kTreeDepth - depth));
+    }
     return true;
   };
   return walk<5, kTreeDepth>(data, size, max_nodes, read_node);

@@ -18,6 +18,7 @@ struct TreeScan {
   std::string reason;
   std::size_t num_nodes = 0;  ///< nodes including the root (0 for an empty body)
   bool root_only = false;     ///< a root without children (no information)
+  std::uint64_t occupied_voxels = 0;  ///< occupied space in full-resolution voxels
 };
 
 /// Checks a binary body (OcTree::writeBinaryData: per node 2 bytes of 8 two-bit child codes,

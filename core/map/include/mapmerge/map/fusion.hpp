@@ -28,6 +28,10 @@ struct FuseConfig {
   bool prune = true;                 ///< prune the target when done (inner nodes are always
                                      ///< updated; skip pruning when fusing several maps in a row)
   double rigid_tolerance = 1e-6;     ///< max |R^T R - I| entry accepted as a rotation [-]
+  double max_work = 5e8;             ///< refuse sources whose leaves would cost more target
+                                     ///< voxel visits than this (bound: n^3 for a leaf n target
+                                     ///< voxels wide, its surface 27 (n+1)^2 when n > 4); real
+                                     ///< Freiburg maps need ~2e7; a hostile huge leaf ~1e10 [-]
 };
 
 /// What fuse_into() did; `ok == false` leaves the target untouched.

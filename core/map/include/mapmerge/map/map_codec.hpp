@@ -37,6 +37,9 @@ struct DecodeLimits {
                                         ///< bytes or more are rejected [bytes]
   std::size_t max_nodes = 16'000'000;   ///< most tree nodes accepted (inner + leaves); ~50-80 B
                                         ///< of RAM each once parsed [nodes]
+  std::uint64_t max_occupied_voxels = 50'000'000;  ///< most occupied space, in full-resolution
+                                        ///< voxels (pruned leaves expanded: what to_points and
+                                        ///< render produce); fr_079 has 0.4 M [voxels]
   double min_resolution = 0.001;        ///< smallest accepted voxel edge [m]
   double max_resolution = 10.0;         ///< largest accepted voxel edge [m]
   std::size_t max_header_bytes = 4096;  ///< longest accepted text header [bytes]
@@ -59,6 +62,7 @@ enum class DecodeError {
   kTooDeep,              ///< the tree goes below OctoMap's 16 levels
   kMalformedTree,        ///< a structurally impossible node (e.g. inner node without children)
   kBadValue,             ///< a log-odds value that is not finite (full `.ot` format)
+  kOccupiedTooLarge,     ///< occupied space above DecodeLimits::max_occupied_voxels
 };
 
 const char* to_string(DecodeError error);
