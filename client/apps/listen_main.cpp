@@ -35,6 +35,10 @@ class MapSaver {
   explicit MapSaver(std::string path) : path_(std::move(path)) {}
   void save(const client::GlobalMap& map) {
     if (path_.empty()) return;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      if (saved_ && saved_version_ == map.version) return;  // a republished version
+    }
     const std::string tmp = path_ + ".tmp.bt";
     write_octree_file(*map.tree, tmp);
     if (std::rename(tmp.c_str(), path_.c_str()) != 0) throw std::runtime_error("cannot rename " + tmp + " to " + path_);

@@ -270,7 +270,20 @@ void ClientCore::deliver_poses(std::deque<Pose>& poses) {
   }
 }
 
+namespace {
+/// FNV-1a over a payload: tells a republished global map from a new one without decoding it.
+std::uint64_t payload_hash(const std::vector<std::uint8_t>& data) {
+  std::uint64_t h = 1469598103934665603ull;
+  for (const std::uint8_t b : data) h = (h ^ b) * 1099511628211ull;
+  return h;
+}
+}  // namespace
+
 void ClientCore::deliver_map(GlobalMapMessage&& message) {
+  // The server republishes its map periodically (late joiners): decode and report changes only.
+  const std::uint64_t hash = payload_hash(message.data);
+  if (last_map_ && last_map_->first == message.version && last_map_->second == hash) return;
+  last_map_ = std::make_pair(message.version, hash);
   std::string error;
   auto decoded = decode_global_map(std::move(message), options_.max_global_map_bytes, error);
   {

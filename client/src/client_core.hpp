@@ -96,6 +96,7 @@ class ClientCore {
   bool callbacks_pending_ = false;
   bool was_connected_ = false;                  // dispatch thread only
   std::uint64_t failures_reported_ = 0;         // dispatch thread only
+  std::optional<std::pair<std::uint64_t, std::uint64_t>> last_map_;  // version, payload hash; dispatch thread
   std::chrono::steady_clock::time_point last_failure_warning_;  // dispatch thread only
 
   // Send thread outbox, guarded by send_mutex_.

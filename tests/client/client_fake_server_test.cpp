@@ -283,6 +283,29 @@ TEST_P(ClientVsFakeServer, ConcurrentPublishersNeverSendANumberBackwards) {
   EXPECT_EQ(stats.write_failures, 0u);
 }
 
+TEST_P(ClientVsFakeServer, RepublishedGlobalMapIsReportedOnce) {
+  test::FakeServer server(test::dds_domain());
+  auto robot = make("r8");
+  std::atomic<int> maps{0};
+  std::atomic<std::uint64_t> last_version{0};
+  robot->on_global_map([&](const std::shared_ptr<const client::GlobalMap>& m) {
+    ++maps;
+    last_version = m->version;
+  });
+  const auto tree = sample_tree("geb079.bt");
+  const auto bytes = encode_map(*tree, Encoding::kOctomapBt);
+  ASSERT_TRUE(server.publish_global(bytes, "octomap-bt", 5, {"r8"}));
+  ASSERT_TRUE(eventually([&] { return maps == 1; }));
+  for (int i = 0; i < 3; ++i) {  // the server's periodic republish of the same version
+    ASSERT_TRUE(server.publish_global(bytes, "octomap-bt", 5, {"r8"}));
+    std::this_thread::sleep_for(100ms);
+  }
+  ASSERT_TRUE(server.publish_global(bytes, "octomap-bt", 6, {"r8"}));
+  ASSERT_TRUE(eventually([&] { return last_version == 6u; }));
+  EXPECT_EQ(maps, 2);
+  EXPECT_EQ(robot->statistics().global_maps_received, 2u);
+}
+
 TEST_P(ClientVsFakeServer, InvalidGlobalMapIsRejectedWithAWarning) {
   test::FakeServer server(test::dds_domain());
   auto robot = make("r6");
