@@ -243,7 +243,9 @@ TEST(Fusion, NonRigidTransformIsRejectedAndTargetUntouched) {
 
 TEST(Fusion, SourceWithAHugeLeafIsRefusedBeforeAnyWork) {
   // A valid two-byte map: one free leaf 1.6 km wide. Rotated, it would touch ~10^10 voxels.
-  const DecodeResult huge = decode_tree_body("OcTree", 0.05, true, {0x01, 0x00}, DecodeLimits{});
+  DecodeLimits limits;
+  limits.max_fusion_work = 1e12;  // let it through decoding: fusion must defend itself too
+  const DecodeResult huge = decode_tree_body("OcTree", 0.05, true, {0x01, 0x00}, limits);
   ASSERT_TRUE(huge.ok()) << huge.reason;
   auto target = test::load("geb079.bt");
   const std::size_t before = target->size();

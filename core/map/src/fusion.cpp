@@ -6,6 +6,7 @@
 #include <Eigen/Geometry>
 
 #include "mapmerge/map/map_io.hpp"
+#include "tree_scan.hpp"
 #include "tree_writer.hpp"
 
 namespace mapmerge {
@@ -157,8 +158,7 @@ double estimate_work(const octomap::OcTree& source, double target_res, bool fuse
   double work = 0.0;
   for (auto it = source.begin_leafs(), end = source.end_leafs(); it != end; ++it) {
     if (!fuse_free && !source.isNodeOccupied(*it)) continue;
-    const double n = std::max(1.0, std::ceil(it.getSize() / target_res));
-    work += n <= 4 ? (n + 1) * (n + 1) * (n + 1) : 27 * (n + 1) * (n + 1);
+    work += detail::leaf_fusion_work(std::max(1.0, std::ceil(it.getSize() / target_res)));
   }
   return work;
 }

@@ -63,9 +63,15 @@ DecodeResult decode_body(double res, bool binary, const std::uint8_t* body, std:
                         std::to_string(scan.num_nodes));
   }
   if (scan.occupied_voxels > limits.max_occupied_voxels) {
-    return rejected(DecodeError::kOccupiedTooLarge,
+    return rejected(DecodeError::kVolumeTooLarge,
                     std::to_string(scan.occupied_voxels) + " occupied full-resolution voxels, limit " +
                         std::to_string(limits.max_occupied_voxels));
+  }
+  if (scan.fusion_work > limits.max_fusion_work) {
+    return rejected(DecodeError::kVolumeTooLarge,
+                    "leaves so large that fusing them would cost ~" +
+                        std::to_string(static_cast<long long>(scan.fusion_work)) + " voxel visits, limit " +
+                        format_double(limits.max_fusion_work));
   }
   DecodeResult result;
   result.tree = std::make_unique<octomap::OcTree>(res);
@@ -154,7 +160,7 @@ const char* to_string(DecodeError error) {
     case DecodeError::kTooDeep: return "too_deep";
     case DecodeError::kMalformedTree: return "malformed_tree";
     case DecodeError::kBadValue: return "bad_value";
-    case DecodeError::kOccupiedTooLarge: return "occupied_too_large";
+    case DecodeError::kVolumeTooLarge: return "volume_too_large";
   }
   return "?";
 }

@@ -77,11 +77,13 @@ TreeScan scan_binary_body(const std::uint8_t* data, std::size_t size, std::size_
   auto read_node = [](const std::uint8_t* p, int depth, std::size_t pos, std::uint32_t& children,
                       std::uint32_t& inner, TreeScan& scan) {
     const std::uint64_t child_voxels = std::uint64_t{1} << (3 * (kTreeDepth - 1 - depth));
+    const double child_width = static_cast<double>(1U << (kTreeDepth - 1 - depth));
     for (int i = 0; i < 8; ++i) {
       const unsigned code = (p[i / 4] >> (2 * (i % 4))) & 3U;
       children += code != 0;
       inner += code == 3;
       if (code == 2) scan.occupied_voxels += child_voxels;  // pruned leaves count in full
+      if (code == 1 || code == 2) scan.fusion_work += leaf_fusion_work(child_width);
     }
     if (children == 0 && depth > 0) {
       scan = fail(DecodeError::kMalformedTree, "inner node without children" + at(pos, depth));
@@ -105,8 +107,9 @@ TreeScan scan_full_body(const std::uint8_t* data, std::size_t size, std::size_t 
     }
     for (int i = 0; i < 8; ++i) children += (p[4] >> i) & 1U;
     followers = children;
-    if (children == 0 && depth > 0 && value >= 0.0F) {  // an occupied leaf (OctoMap's threshold)
-      scan.occupied_voxels += std::uint64_t{1} << (3 * (kTreeDepth - depth));
+    if (children == 0 && depth > 0) {
+      if (value >= 0.0F) scan.occupied_voxels += std::uint64_t{1} << (3 * (kTreeDepth - depth));
+      scan.fusion_work += leaf_fusion_work(static_cast<double>(1U << (kTreeDepth - depth)));
     }
     return true;
   };

@@ -12,6 +12,12 @@
 
 namespace mapmerge::detail {
 
+/// Upper bound of the target voxel visits fusing one leaf `n` target voxels wide costs: all its
+/// voxels when small, otherwise its (rotated, inflated) surface; the interior goes in blocks.
+inline double leaf_fusion_work(double n) {
+  return n <= 4 ? (n + 1) * (n + 1) * (n + 1) : 27 * (n + 1) * (n + 1);
+}
+
 /// What a scan found: the node count of a well-formed body, or why it is not one.
 struct TreeScan {
   DecodeError error = DecodeError::kNone;
@@ -19,6 +25,7 @@ struct TreeScan {
   std::size_t num_nodes = 0;  ///< nodes including the root (0 for an empty body)
   bool root_only = false;     ///< a root without children (no information)
   std::uint64_t occupied_voxels = 0;  ///< occupied space in full-resolution voxels
+  double fusion_work = 0.0;           ///< sum of leaf_fusion_work() over the leaves
 };
 
 /// Checks a binary body (OcTree::writeBinaryData: per node 2 bytes of 8 two-bit child codes,

@@ -40,6 +40,9 @@ struct DecodeLimits {
   std::uint64_t max_occupied_voxels = 50'000'000;  ///< most occupied space, in full-resolution
                                         ///< voxels (pruned leaves expanded: what to_points and
                                         ///< render produce); fr_079 has 0.4 M [voxels]
+  double max_fusion_work = 5e8;         ///< most target-voxel visits fusing the map at its own
+                                        ///< resolution may cost (FuseConfig::max_work; huge pruned
+                                        ///< leaves); fr_079 needs ~2e7 [-]
   double min_resolution = 0.001;        ///< smallest accepted voxel edge [m]
   double max_resolution = 10.0;         ///< largest accepted voxel edge [m]
   std::size_t max_header_bytes = 4096;  ///< longest accepted text header [bytes]
@@ -62,7 +65,8 @@ enum class DecodeError {
   kTooDeep,              ///< the tree goes below OctoMap's 16 levels
   kMalformedTree,        ///< a structurally impossible node (e.g. inner node without children)
   kBadValue,             ///< a log-odds value that is not finite (full `.ot` format)
-  kOccupiedTooLarge,     ///< occupied space above DecodeLimits::max_occupied_voxels
+  kVolumeTooLarge,       ///< occupied space or leaf sizes beyond max_occupied_voxels or
+                         ///< max_fusion_work (valid bytes, but too costly to process)
 };
 
 const char* to_string(DecodeError error);
