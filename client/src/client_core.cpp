@@ -1,5 +1,6 @@
 #include "client_core.hpp"
 
+#include <cstdlib>
 #include <utility>
 
 #include <unistd.h>
@@ -52,7 +53,12 @@ ClientCore::ClientCore(Options options, Vendor vendor) : options_(validated(std:
   TransportEvents events;
   events.pose = [this](Pose&& p) { on_pose(std::move(p)); };
   events.global_map = [this](GlobalMapMessage&& m) { on_global_map(std::move(m)); };
-  const TransportConfig config = transport_config(options_);
+  TransportConfig config = transport_config(options_);
+  if (vendor_ == Vendor::kFastdds && config.profile.discovery_server.empty()) {
+    if (const char* env = std::getenv("ROS_DISCOVERY_SERVER"); env != nullptr && *env != '\0') {
+      config.profile.discovery_server = env;  // as mapmerge-server and ROS 2 tools do
+    }
+  }
   transport_ = vendor_ == Vendor::kCyclone ? make_cyclone_transport(config, std::move(events))
                                            : make_fastdds_transport(config, std::move(events));
   dispatch_thread_ = std::thread([this] { dispatch_loop(); });

@@ -48,6 +48,26 @@ TEST(DiscoveryServer, ClientAndServerMeetThroughIt) {
   ds.wait(10s);
 }
 
+TEST(DiscoveryServer, FastddsClientTakesItFromRosDiscoveryServer) {
+  const int domain = test::dds_domain();
+  const std::string port = std::to_string(30000 + domain);
+  const std::string address = "127.0.0.1:" + port;
+  test::Process ds("/usr/bin/fast-discovery-server", {"-i", "0", "-l", "127.0.0.1", "-p", port},
+                   ::testing::TempDir() + "ds_env_" + std::to_string(::getpid()));
+  std::this_thread::sleep_for(500ms);
+  ASSERT_TRUE(ds.running()) << ds.err();
+  test::FakeServer server(domain, address);
+  ::setenv("ROS_DISCOVERY_SERVER", address.c_str(), 1);
+  client::Options o;
+  o.robot_id = "r2";
+  o.domain = domain;
+  Client robot(o);
+  ::unsetenv("ROS_DISCOVERY_SERVER");
+  EXPECT_TRUE(robot.wait_for_server(30s));
+  ds.signal(SIGTERM);
+  ds.wait(10s);
+}
+
 TEST(DiscoveryServer, CycloneClientRejectsIt) {
   client::Options o;
   o.robot_id = "r1";

@@ -91,8 +91,8 @@ struct Options {
   std::string robot_id;         ///< this robot's id (a ROS 2 name token); empty: observe only
   int domain = 0;               ///< DDS domain id (0..101 on hosts with the default port range)
   std::string profile = "local";  ///< "local" (127.0.0.1 only), "default" (a real fleet) or FILE.xml
-  std::string discovery_server;   ///< Fast DDS discovery server "HOST:PORT"; empty: none
-                                  ///< (Fast DDS still honours ROS_DISCOVERY_SERVER)
+  std::string discovery_server;   ///< Fast DDS discovery server "HOST:PORT"; empty:
+                                  ///< ROS_DISCOVERY_SERVER if set, else simple discovery
   std::string keystore;         ///< DDS Security keystore (scripts/make-keystore, SROS2 layout);
                                 ///< empty: ROS_SECURITY_KEYSTORE if ROS_SECURITY_ENABLE=true, else off
   std::string enclave;          ///< enclave in the keystore; empty: ROS_SECURITY_ENCLAVE, else the robot id
