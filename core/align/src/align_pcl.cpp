@@ -103,9 +103,9 @@ Validation check(const PreparedMap::Impl& target, const PreparedMap::Impl& sourc
   return v;
 }
 
-/// Ranking score of a validated transform: agreement minus contradiction.
-double score_of(const Validation& v) {
-  return static_cast<double>(v.inliers) - 2.0 * static_cast<double>(v.conflicts);
+/// Ranking score of a validated transform: agreement minus weighted contradiction.
+double score_of(const Validation& v, double conflict_weight) {
+  return static_cast<double>(v.inliers) - conflict_weight * static_cast<double>(v.conflicts);
 }
 
 /// Empty string when `v` passes every acceptance test, else the reason.
@@ -216,7 +216,7 @@ Normal6 icp_system(const Cloud& src, std::size_t step, const Cloud& tgt,
 /// its budget on the overlap only (at 10 % overlap most of a map has no partner).
 Cloud overlap_sample(const Cloud& full, const pcl::KdTreeFLANN<Point>& tree, const Eigen::Matrix4d& T0,
                      double dmax, std::size_t max_points) {
-  const std::size_t probe_step = std::max<std::size_t>(1, full.size() / (8 * max_points));
+  const std::size_t probe_step = std::max<std::size_t>(1, full.size() / (2 * max_points));
   const Eigen::Matrix4f T = T0.cast<float>();
   const auto dmax2 = static_cast<float>(dmax * dmax);
   Cloud kept;
@@ -235,13 +235,14 @@ Cloud overlap_sample(const Cloud& full, const pcl::KdTreeFLANN<Point>& tree, con
 }
 
 Eigen::Matrix4d icp(const PreparedMap::Impl& source, const Cloud::Ptr& target_crop,
-                    const Eigen::Matrix4d& T0, const RefineConfig& c, double res) {
+                    const Eigen::Matrix4d& T0, const RefineConfig& c, double res,
+                    std::size_t max_points) {
   if (target_crop->size() < 10) return T0;
   pcl::KdTreeFLANN<Point> tree;
   tree.setInputCloud(target_crop);
   // Source: full-resolution voxel centres (not the downsampled cloud), so the result is not
   // quantised by the describe voxel; target: downsampled points with their local planes.
-  const Cloud src = overlap_sample(*source.full, tree, T0, c.max_correspondence * res, c.max_points);
+  const Cloud src = overlap_sample(*source.full, tree, T0, c.max_correspondence * res, max_points);
   Eigen::Matrix4d T = T0;
   const int ramp = std::max(1, c.max_iterations / 3);  // iterations to reach final_correspondence
   for (int it = 0; it < c.max_iterations; ++it) {
@@ -283,13 +284,14 @@ Eigen::Matrix4d ndt(const PreparedMap::Impl& source, const Cloud::Ptr& target_cr
   return reg.getFinalTransformation().cast<double>();
 }
 
+/// Stage 8. `polish`: the final pass on the chosen transform, with final_points.
 Eigen::Matrix4d local_alignment(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
-                                const Eigen::Matrix4d& T0, const RefineConfig& c) {
+                                const Eigen::Matrix4d& T0, const RefineConfig& c, bool polish) {
   if (c.method == RefineMethod::kNone) return T0;
   const double res = scale_of(target, source);
   const Cloud::Ptr crop = crop_target(target, source, T0, c.crop_margin * res);
-  return c.method == RefineMethod::kNdt ? ndt(source, crop, T0, c, res)
-                                        : icp(source, crop, T0, c, res);
+  if (c.method == RefineMethod::kNdt) return polish ? T0 : ndt(source, crop, T0, c, res);
+  return icp(source, crop, T0, c, res, polish ? c.final_points : c.max_points);
 }
 
 // ---------------------------------------------------------------------------------------
@@ -374,13 +376,18 @@ std::vector<Candidate> search_blocks(const PreparedMap::Impl& target, const Prep
 
 /// Keeps the best distinct candidates by coarse score.
 std::vector<Candidate> shortlist(std::vector<Candidate> all, const ValidateConfig& c, double res) {
-  std::sort(all.begin(), all.end(), [](const Candidate& a, const Candidate& b) {
-    return score_of(a.coarse) > score_of(b.coarse);
+  const double w = c.conflict_weight;
+  std::sort(all.begin(), all.end(), [w](const Candidate& a, const Candidate& b) {
+    return score_of(a.coarse, w) > score_of(b.coarse, w);
   });
   std::vector<Candidate> out;
-  const double floor = all.empty() ? 0.0 : c.refine_score_ratio * score_of(all.front().coarse);
+  const double floor = all.empty() ? 0.0 : c.refine_score_ratio * score_of(all.front().coarse, c.conflict_weight);
   for (const Candidate& cand : all) {
-    if (score_of(cand.coarse) < floor || score_of(cand.coarse) <= 0.0) break;
+    if (score_of(cand.coarse, c.conflict_weight) < floor || score_of(cand.coarse, c.conflict_weight) <= 0.0) break;
+    // Raw hypotheses are a few voxels off, so they may contradict a little; far off, they cannot win.
+    if (cand.coarse.inlier_share < c.min_inlier_share - 0.25 ||
+        cand.coarse.inlier_fraction < c.min_inlier_fraction / 2.0)
+      continue;
     bool dup = false;
     for (const Candidate& o : out)
       dup = dup || same_pose(o.h.T_target_source, cand.h.T_target_source, c.distinct_rotation_deg,
@@ -391,7 +398,7 @@ std::vector<Candidate> shortlist(std::vector<Candidate> all, const ValidateConfi
   return out;
 }
 
-std::size_t fine_samples(const ValidateConfig& c) { return c.coarse_points * 4; }
+std::size_t fine_samples(const ValidateConfig& c) { return c.coarse_points * 2; }
 
 }  // namespace
 
@@ -430,15 +437,17 @@ AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
     return finish("no hypothesis from " + std::to_string(matches.size()) + " correspondences");
   }
   t0 = Clock::now();
-  for (Candidate& c : cands) c.T_refined = local_alignment(target, source, c.h.T_target_source, cfg.refine);
+  for (Candidate& c : cands)
+    c.T_refined = local_alignment(target, source, c.h.T_target_source, cfg.refine, false);
   result.timings.refine_ms = ms_since(t0);
 
   t0 = Clock::now();
   for (Candidate& c : cands)
     c.fine = check(target, source, c.T_refined, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);
   // Best by score; the distinct runner-up must be clearly worse (repetitive corridors).
-  std::sort(cands.begin(), cands.end(), [](const Candidate& a, const Candidate& b) {
-    return score_of(a.fine) > score_of(b.fine);
+  const double w = cfg.validate.conflict_weight;
+  std::sort(cands.begin(), cands.end(), [w](const Candidate& a, const Candidate& b) {
+    return score_of(a.fine, w) > score_of(b.fine, w);
   });
   const Candidate& best = cands.front();
   std::string why = rejection(best.fine, cfg.validate, res);
@@ -446,17 +455,31 @@ AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
     if (same_pose(best.T_refined, cands[i].T_refined, cfg.validate.distinct_rotation_deg,
                   cfg.validate.distinct_translation * res))
       continue;
-    if (score_of(cands[i].fine) >= cfg.validate.ambiguity_ratio * score_of(best.fine))
+    if (score_of(cands[i].fine, w) >= cfg.validate.ambiguity_ratio * score_of(best.fine, w))
       why = "ambiguous: a distinct transform scores " +
-            std::to_string(score_of(cands[i].fine) / std::max(1.0, score_of(best.fine))) + " of the best";
+            std::to_string(score_of(cands[i].fine, w) / std::max(1.0, score_of(best.fine, w))) + " of the best";
   }
   add_ms(validate_ms, t0);
+  Eigen::Matrix4d T_best = best.T_refined;
+  Validation v_best = best.fine;
+  if (why.empty()) {  // polish the winner with more points, keep it if it validates as well
+    t0 = Clock::now();
+    const Eigen::Matrix4d T_polished = local_alignment(target, source, T_best, cfg.refine, true);
+    result.timings.refine_ms += ms_since(t0);
+    t0 = Clock::now();
+    const Validation v = check(target, source, T_polished, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);
+    add_ms(validate_ms, t0);
+    if (rejection(v, cfg.validate, res).empty() && score_of(v, w) >= 0.98 * score_of(v_best, w)) {
+      T_best = T_polished;
+      v_best = v;
+    }
+  }
   result.timings.validate_ms = validate_ms;
-  result.T_target_source = best.T_refined;
-  result.fitness = best.fine.fitness;
-  result.inliers = best.fine.inliers;
-  result.overlap = best.fine.overlap;
-  result.inlier_share = best.fine.inlier_share;
+  result.T_target_source = T_best;
+  result.fitness = v_best.fitness;
+  result.inliers = v_best.inliers;
+  result.overlap = v_best.overlap;
+  result.inlier_share = v_best.inlier_share;
   result.submodel = best.h.submodel;
   result.accepted = why.empty();
   if (!result.accepted) result.T_target_source = Eigen::Matrix4d::Identity();
@@ -470,7 +493,7 @@ AlignResult refine(const PreparedMap& target_map, const PreparedMap& source_map,
   const PreparedMap::Impl& source = source_map.impl();
   AlignResult result;
   auto t0 = Clock::now();
-  const Eigen::Matrix4d T = local_alignment(target, source, T_target_source_init, cfg.refine);
+  const Eigen::Matrix4d T = local_alignment(target, source, T_target_source_init, cfg.refine, true);
   result.timings.refine_ms = ms_since(t0);
   t0 = Clock::now();
   const Validation v = check(target, source, T, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);

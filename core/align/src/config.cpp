@@ -48,6 +48,8 @@ void for_each_field(Config& c, F&& f) {
   f("keypoints", "gamma_32", k.gamma_32);
   f("keypoints", "min_neighbors", k.min_neighbors);
   f("keypoints", "threads", k.threads);
+  f("describe", "voxel_size", c.describe.voxel_size);
+  f("describe", "normal_radius", c.describe.normal_radius);
   f("describe", "method", c.describe.method);
   f("describe", "radius", c.describe.radius);
   f("describe", "threads", c.describe.threads);
@@ -71,6 +73,7 @@ void for_each_field(Config& c, F&& f) {
   f("validate", "max_fitness", v.max_fitness);
   f("validate", "conflict_distance", v.conflict_distance);
   f("validate", "min_inlier_share", v.min_inlier_share);
+  f("validate", "conflict_weight", v.conflict_weight);
   f("validate", "ambiguity_ratio", v.ambiguity_ratio);
   f("validate", "distinct_rotation_deg", v.distinct_rotation_deg);
   f("validate", "distinct_translation", v.distinct_translation);
@@ -87,6 +90,7 @@ void for_each_field(Config& c, F&& f) {
   f("refine", "convergence_translation", r.convergence_translation);
   f("refine", "convergence_rotation_deg", r.convergence_rotation_deg);
   f("refine", "max_points", r.max_points);
+  f("refine", "final_points", r.final_points);
   f("refine", "ndt_resolution", r.ndt_resolution);
   f("refine", "ndt_step", r.ndt_step);
 }
@@ -211,6 +215,8 @@ void check_align_config(const AlignConfig& c) {
   require(c.keypoints.salient_radius > 0.0 && c.keypoints.non_max_radius > 0.0,
           "keypoints radii > 0");
   require(c.describe.radius > 0.0, "describe.radius > 0");
+  require(c.describe.voxel_size >= 0.0 && c.describe.normal_radius > 0.0,
+          "describe.voxel_size >= 0 and describe.normal_radius > 0");
   require(c.match.k_nearest >= 1, "match.k_nearest >= 1");
   require(c.match.iterations >= 1, "match.iterations >= 1");
   require(c.match.edge_similarity >= 0.0 && c.match.edge_similarity < 1.0,

@@ -2,8 +2,9 @@
 #include <chrono>
 #include <stdexcept>
 
+#include <pcl/features/fpfh.h>
 #include <pcl/features/fpfh_omp.h>
-#include <pcl/features/normal_3d_omp.h>
+#include <pcl/features/normal_3d.h>
 #include <pcl/features/shot_omp.h>
 #include <pcl/filters/extract_indices.h>
 #include <pcl/filters/statistical_outlier_removal.h>
@@ -64,6 +65,17 @@ Cloud::Ptr remove_ground(const Cloud::Ptr& cloud, const PreprocessConfig& c, dou
   return out;
 }
 
+Cloud::Ptr voxel_grid(const Cloud::Ptr& cloud, double leaf_size) {
+  if (leaf_size <= 0.0) return cloud;
+  pcl::VoxelGrid<Point> grid;
+  const auto leaf = static_cast<float>(leaf_size);
+  grid.setLeafSize(leaf, leaf, leaf);
+  grid.setInputCloud(cloud);
+  auto out = std::make_shared<Cloud>();
+  grid.filter(*out);
+  return out;
+}
+
 /// Stage 2: pass-through, ground removal, voxel grid, statistical outlier removal.
 Cloud::Ptr preprocess(const Cloud::Ptr& input, const PreprocessConfig& c, double res) {
   Cloud::Ptr cloud = input;
@@ -74,15 +86,7 @@ Cloud::Ptr preprocess(const Cloud::Ptr& input, const PreprocessConfig& c, double
     cloud = kept;
   }
   if (c.remove_ground && cloud->size() > 100) cloud = remove_ground(cloud, c, res);
-  if (c.voxel_size > 1.0) {
-    pcl::VoxelGrid<Point> grid;
-    const auto leaf = static_cast<float>(c.voxel_size * res);
-    grid.setLeafSize(leaf, leaf, leaf);
-    grid.setInputCloud(cloud);
-    auto out = std::make_shared<Cloud>();
-    grid.filter(*out);
-    cloud = out;
-  }
+  if (c.voxel_size > 1.0) cloud = voxel_grid(cloud, c.voxel_size * res);
   if (c.outlier_removal && cloud->size() > static_cast<std::size_t>(c.outlier_mean_k) + 1) {
     pcl::StatisticalOutlierRemoval<Point> sor;
     sor.setMeanK(c.outlier_mean_k);
@@ -107,11 +111,13 @@ int free_votes(const octomap::OcTree& tree, const Point& p, float sign, double r
   return votes;
 }
 
-void estimate_normals(Cloud& cloud, const octomap::OcTree& tree, const PreprocessConfig& c,
+/// Normals of `cloud`; with `orient`, each faces the octree's free space (descriptors need a
+/// consistent sign; point-to-plane ICP does not).
+void estimate_normals(Cloud& cloud, const octomap::OcTree& tree, bool orient, double radius,
                       double res) {
-  pcl::NormalEstimationOMP<Point, pcl::Normal> ne(1);
+  pcl::NormalEstimation<Point, pcl::Normal> ne;
   ne.setInputCloud(std::shared_ptr<const Cloud>(&cloud, [](const Cloud*) {}));
-  ne.setRadiusSearch(c.normal_radius * res);
+  ne.setRadiusSearch(radius);
   pcl::PointCloud<pcl::Normal> normals;
   ne.compute(normals);
   for (std::size_t i = 0; i < cloud.size(); ++i) {
@@ -123,8 +129,8 @@ void estimate_normals(Cloud& cloud, const octomap::OcTree& tree, const Preproces
       p.normal_z = 1.0F;
       continue;
     }
-    const int plus = c.orient_normals_to_free ? free_votes(tree, p, 1.0F, res) : 0;
-    const int minus = c.orient_normals_to_free ? free_votes(tree, p, -1.0F, res) : 0;
+    const int plus = orient ? free_votes(tree, p, 1.0F, res) : 0;
+    const int minus = orient ? free_votes(tree, p, -1.0F, res) : 0;
     const bool flip = minus > plus || (minus == plus && p.normal_z < 0.0F);
     if (flip) p.getNormalVector3fMap() *= -1.0F;
   }
@@ -168,30 +174,41 @@ Cloud::Ptr keep_valid(const Cloud& cloud, const pcl::Indices& indices,
   return keypoints;
 }
 
+template <class Estimator, class Features>
+void compute_feature(Estimator& est, const Cloud::Ptr& cloud, const pcl::IndicesPtr& indices,
+                     double radius, Features& out) {
+  est.setInputCloud(cloud);
+  est.setIndices(indices);
+  est.setInputNormals(cloud);
+  est.setRadiusSearch(radius);
+  est.compute(out);
+}
+
 void describe(PreparedMap::Impl& m, const pcl::IndicesPtr& indices, const DescribeConfig& c) {
   const double radius = c.radius * m.resolution;
   const unsigned threads = static_cast<unsigned>(std::max(1, c.threads));
   if (c.method == Descriptor::kFpfh) {
-    pcl::FPFHEstimationOMP<Point, Point, Fpfh> est(threads);
-    est.setInputCloud(m.cloud);
-    est.setIndices(indices);
-    est.setInputNormals(m.cloud);
-    est.setRadiusSearch(radius);
     auto features = std::make_shared<pcl::PointCloud<Fpfh>>();
-    est.compute(*features);
-    m.keypoints = keep_valid(*m.cloud, *indices, *features);
+    if (threads > 1) {
+      pcl::FPFHEstimationOMP<Point, Point, Fpfh> est(threads);
+      compute_feature(est, m.coarse, indices, radius, *features);
+    } else {
+      pcl::FPFHEstimation<Point, Point, Fpfh> est;  // no OpenMP team to start and spin
+      compute_feature(est, m.coarse, indices, radius, *features);
+    }
+    m.keypoints = keep_valid(*m.coarse, *indices, *features);
     m.fpfh = features;
     m.fpfh_tree = std::make_shared<pcl::KdTreeFLANN<Fpfh>>();
     if (!features->empty()) m.fpfh_tree->setInputCloud(features);
   } else {
     pcl::SHOTEstimationOMP<Point, Point, Shot> est(threads);
-    est.setInputCloud(m.cloud);
+    est.setInputCloud(m.coarse);
     est.setIndices(indices);
-    est.setInputNormals(m.cloud);
+    est.setInputNormals(m.coarse);
     est.setRadiusSearch(radius);
     auto features = std::make_shared<pcl::PointCloud<Shot>>();
     est.compute(*features);
-    m.keypoints = keep_valid(*m.cloud, *indices, *features);
+    m.keypoints = keep_valid(*m.coarse, *indices, *features);
     m.shot = features;
     m.shot_tree = std::make_shared<pcl::KdTreeFLANN<Shot>>();
     if (!features->empty()) m.shot_tree->setInputCloud(features);
@@ -237,13 +254,17 @@ PreparedMap prepare_map(std::shared_ptr<const octomap::OcTree> shared, const Ali
   m->full_tree->setInputCloud(m->full);
   m->cloud = preprocess(m->full, config.preprocess, m->resolution);
   if (m->cloud->size() < 10) throw std::invalid_argument("map has fewer than 10 points after preprocessing");
-  estimate_normals(*m->cloud, tree, config.preprocess, m->resolution);
+  estimate_normals(*m->cloud, tree, false, config.preprocess.normal_radius * m->resolution,
+                   m->resolution);
   m->cloud_tree = std::make_shared<pcl::KdTreeFLANN<Point>>();
   m->cloud_tree->setInputCloud(m->cloud);
+  m->coarse = voxel_grid(m->cloud, config.describe.voxel_size * m->resolution);
+  estimate_normals(*m->coarse, tree, config.preprocess.orient_normals_to_free,
+                   config.describe.normal_radius * m->resolution, m->resolution);
   m->timings.preprocess_ms = ms_since(t0);
 
   t0 = Clock::now();
-  const pcl::IndicesPtr indices = detect_iss(m->cloud, config.keypoints, m->resolution);
+  const pcl::IndicesPtr indices = detect_iss(m->coarse, config.keypoints, m->resolution);
   m->timings.keypoints_ms = ms_since(t0);
 
   t0 = Clock::now();

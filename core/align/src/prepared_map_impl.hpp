@@ -27,6 +27,7 @@ struct PreparedMap::Impl {
   pcl::KdTreeFLANN<Point>::Ptr full_tree;        ///< kd-tree over `full`
   Cloud::Ptr cloud;                              ///< stage 2 output, with normals and occupancy
   pcl::KdTreeFLANN<Point>::Ptr cloud_tree;       ///< kd-tree over `cloud`
+  Cloud::Ptr coarse;                             ///< `cloud` at the describe voxel: keypoints, descriptors
   Cloud::Ptr keypoints;                          ///< stage 4, only those with a valid descriptor
   pcl::PointCloud<Fpfh>::Ptr fpfh;               ///< stage 5 when FPFH (one per keypoint)
   pcl::PointCloud<Shot>::Ptr shot;               ///< stage 5 when SHOT

@@ -24,7 +24,7 @@ struct PreprocessConfig {
   bool remove_ground = false;      ///< remove the dominant near-horizontal plane (the paper: ground has no features)
   double ground_distance = 1.5;    ///< plane inlier distance [x res]
   double ground_max_tilt_deg = 10.0;  ///< largest angle between plane normal and z for a ground plane [deg]
-  double voxel_size = 2.5;         ///< voxel-grid leaf before describing [x res]
+  double voxel_size = 2.5;         ///< voxel-grid leaf of the cloud used by ICP [x res]
   bool outlier_removal = true;     ///< statistical outlier removal on/off
   int outlier_mean_k = 8;          ///< neighbours for the statistical outlier removal [points]
   double outlier_stddev = 3.0;     ///< rejection threshold [standard deviations of the mean distance]
@@ -35,11 +35,11 @@ struct PreprocessConfig {
 /// Stage 3: model extraction (submodels) from the source map.
 struct SubmodelConfig {
   bool enabled = false;          ///< true: divide the source into blocks (the paper's *_DIV); false: whole map
-  double block_size = 60.0;      ///< block edge in x and y [x res] (3 m at 5 cm, the paper's value)
+  double block_size = 100.0;     ///< block edge in x and y [x res] (5 m at 5 cm; the paper: 3 m with denser keypoints)
   bool grid_3d = false;          ///< divide along z as well (multi-level maps)
   double block_height = 60.0;    ///< block edge in z when grid_3d [x res]
   double block_overlap = 0.5;    ///< share of a block shared with its neighbour [0..0.9]
-  std::size_t min_keypoints = 12;   ///< blocks with fewer source keypoints are skipped [points]
+  std::size_t min_keypoints = 8;   ///< blocks with fewer source keypoints are skipped [points]
   bool early_stop = true;        ///< stop launching blocks once a hypothesis is good enough
   double early_stop_inlier_share = 0.8;  ///< inliers / (inliers + contradictions) that counts as good enough [0..1]
   int threads = 0;               ///< worker threads for blocks (0 = TBB default)
@@ -47,8 +47,8 @@ struct SubmodelConfig {
 
 /// Stage 4: ISS keypoints (Eq. 1-3).
 struct KeypointConfig {
-  double salient_radius = 6.0;   ///< support radius of the scatter matrix [x res]
-  double non_max_radius = 6.0;   ///< non-maximum suppression radius [x res]
+  double salient_radius = 10.0;   ///< support radius of the scatter matrix [x res]
+  double non_max_radius = 8.0;   ///< non-maximum suppression radius [x res]
   double gamma_21 = 0.975;       ///< upper bound on lambda2/lambda1 (largest first, PCL convention) [ratio]
   double gamma_32 = 0.975;       ///< upper bound on lambda3/lambda2 [ratio]
   int min_neighbors = 5;         ///< minimum support size [points]
@@ -57,10 +57,12 @@ struct KeypointConfig {
 
 enum class Descriptor { kFpfh, kShot };
 
-/// Stage 5: local descriptors at the keypoints.
+/// Stages 4-5 run on a coarser copy of the preprocessed cloud; stage 5: local descriptors.
 struct DescribeConfig {
+  double voxel_size = 4.0;       ///< voxel-grid leaf of the cloud keypoints and descriptors use [x res]
+  double normal_radius = 10.0;   ///< normal estimation radius on that cloud [x res]
   Descriptor method = Descriptor::kFpfh;  ///< FPFH (33 bins) or SHOT (352 bins, the paper's)
-  double radius = 10.0;          ///< descriptor support radius [x res]
+  double radius = 14.0;          ///< descriptor support radius [x res]
   int threads = 1;               ///< OpenMP threads inside the descriptor estimation
 };
 
@@ -92,11 +94,12 @@ struct ValidateConfig {
   double conflict_distance = 3.0;  ///< a point further than this from any occupied point and inside
                                    ///< the other map's known free space contradicts the transform [x res]
   double min_inlier_share = 0.9;  ///< inliers / (inliers + contradictions) to accept [0..1]
+  double conflict_weight = 5.0;  ///< ranking score = inliers - conflict_weight * contradictions [ratio]
   double ambiguity_ratio = 0.85;  ///< reject when a distinct hypothesis scores at least this share of the best [0..1]
   double distinct_rotation_deg = 5.0;  ///< hypotheses differing more than this are distinct [deg]
   double distinct_translation = 10.0;  ///< ... or more than this [x res]
-  std::size_t coarse_points = 1500;  ///< points sampled for the quick check of raw hypotheses [count]
-  std::size_t refine_candidates = 4;  ///< best raw hypotheses refined and strictly validated [count]
+  std::size_t coarse_points = 1500;  ///< points per direction for the quick check of raw hypotheses (twice as many for the final check) [count]
+  std::size_t refine_candidates = 3;  ///< best raw hypotheses refined and strictly validated [count]
   double refine_score_ratio = 0.4;  ///< raw hypotheses scoring below this share of the best are not refined [0..1]
 };
 
@@ -110,9 +113,10 @@ struct RefineConfig {
   double max_correspondence = 4.0;  ///< ICP pair distance, first iteration [x res]
   double final_correspondence = 2.0;  ///< ICP pair distance reached by the last iterations [x res]
   double crop_margin = 10.0;     ///< d_m: inflation of the source box when cropping the target [x res]
-  double convergence_translation = 0.01;  ///< stop when an update moves less than this [x res]
-  double convergence_rotation_deg = 0.01;  ///< ... and rotates less than this [deg]
-  std::size_t max_points = 3000;  ///< source points in the overlap used by ICP (subsampled) [count]
+  double convergence_translation = 0.05;  ///< stop when an update moves less than this [x res]
+  double convergence_rotation_deg = 0.02;  ///< ... and rotates less than this [deg]
+  std::size_t max_points = 3000;  ///< source points in the overlap used by ICP on each candidate [count]
+  std::size_t final_points = 10000;  ///< ... by the final pass on the chosen transform (and by refine()) [count]
   double ndt_resolution = 8.0;   ///< NDT cell size [x res]
   double ndt_step = 4.0;         ///< NDT More-Thuente step size [x res]
 };
