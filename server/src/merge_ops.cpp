@@ -36,10 +36,10 @@ DecodedMap decode_sample(const MapSample& s, const DecodeLimits& limits) {
   return out;
 }
 
-std::shared_ptr<const align::PreparedMap> prepare(const octomap::OcTree& tree,
+std::shared_ptr<const align::PreparedMap> prepare(std::shared_ptr<const octomap::OcTree> tree,
                                                   const align::AlignConfig& config, std::string& error) {
   try {
-    return std::make_shared<const align::PreparedMap>(align::prepare_map(tree, config));
+    return std::make_shared<const align::PreparedMap>(align::prepare_map(std::move(tree), config));
   } catch (const std::exception& e) {
     error = e.what();
     return nullptr;

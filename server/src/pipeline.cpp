@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 
 #include <spdlog/spdlog.h>
 
@@ -53,6 +54,7 @@ bool Pipeline::ingest(const MapSample& m, bool persist) {
   r.received_unix = m.received_unix;
   r.tree = decoded.tree;
   const std::size_t leaves = decoded.tree->getNumLeafNodes();
+  warn_on_resolution(robot, r.resolution);
   registry_.put_map(std::move(r));
   if (persist && store_ != nullptr) {
     try {
@@ -65,6 +67,14 @@ bool Pipeline::ingest(const MapSample& m, bool persist) {
   spdlog::info("robot {}: map {}/{} accepted ({} leaves, {:.3f} m)", robot, m.session_id, m.sequence, leaves,
                decoded.tree->getResolution());
   return true;
+}
+
+void Pipeline::warn_on_resolution(const std::string& robot, double resolution) const {
+  const auto ref = registry_.get(registry_.reference());
+  if (ref && ref->tree && ref->robot_id != robot && std::abs(ref->resolution - resolution) > 1e-9) {
+    spdlog::warn("robot {}: resolution {:.3f} m differs from the reference's {:.3f} m: fusion resamples it", robot,
+                 resolution, ref->resolution);
+  }
 }
 
 void Pipeline::place(const std::string& robot) {
@@ -91,7 +101,7 @@ std::shared_ptr<const align::PreparedMap> Pipeline::prepared(const std::string& 
   if (!rec || !rec->tree) return nullptr;
   if (rec->prepared) return rec->prepared;
   std::string error;
-  auto p = prepare(*rec->tree, config_.align, error);
+  auto p = prepare(rec->tree, config_.align, error);
   if (!p) {
     spdlog::warn("robot {}: map cannot be aligned: {}", robot, error);
     return nullptr;

@@ -26,8 +26,9 @@ struct DecodedMap {
 /// does not match its topic is rejected too.
 DecodedMap decode_sample(const MapSample& sample, const DecodeLimits& limits);
 
-/// Alignment features of a map; null with `error` set for a map that cannot be aligned.
-std::shared_ptr<const align::PreparedMap> prepare(const octomap::OcTree& tree,
+/// Alignment features of a map (sharing the tree, not copying it); null with `error` set for a
+/// map that cannot be aligned.
+std::shared_ptr<const align::PreparedMap> prepare(std::shared_ptr<const octomap::OcTree> tree,
                                                   const align::AlignConfig& config, std::string& error);
 
 /// Global search for T_target_source (no initial guess).

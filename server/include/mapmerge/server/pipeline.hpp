@@ -47,6 +47,7 @@ class Pipeline {
 
  private:
   bool ingest(const MapSample& map, bool persist);
+  void warn_on_resolution(const std::string& robot, double resolution) const;
   void place(const std::string& robot);
   void refine_known(const RobotRecord& robot);
   void search_unknown(const RobotRecord& robot);
