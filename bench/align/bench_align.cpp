@@ -81,6 +81,7 @@ std::vector<Variant> make_variants(const ma::AlignConfig& base, bool all) {
         v.push_back({std::string(mname) + "+" + rname + (div ? "_DIV" : ""), c});
       }
   ma::AlignConfig c = base;
+  c.match.iterations = 5000;  // PCL's loops score every sample on the keypoint clouds: slower
   c.match.method = ma::MatchMethod::kSacIa;
   v.push_back({"SAC-IA(PCL)+OICP", c});
   c.match.method = ma::MatchMethod::kPrerejective;

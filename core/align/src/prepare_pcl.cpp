@@ -1,7 +1,9 @@
 // Stages 1, 2, 4, 5 for one map (PCL translation unit 1 of 3).
 #include <chrono>
+#include <mutex>
 #include <stdexcept>
 
+#include <pcl/console/print.h>
 #include <pcl/features/fpfh.h>
 #include <pcl/features/fpfh_omp.h>
 #include <pcl/features/normal_3d.h>
@@ -235,6 +237,10 @@ PreparedMap prepare_map(const octomap::OcTree& tree, const AlignConfig& config) 
 
 PreparedMap prepare_map(std::shared_ptr<const octomap::OcTree> shared, const AlignConfig& config) {
   if (!shared) throw std::invalid_argument("prepare_map: no tree");
+  // PCL prints per-point warnings (degenerate ISS scatter, invalid SHOT frames) that the
+  // pipeline already handles by dropping those points; results carry what matters.
+  static std::once_flag quiet;
+  std::call_once(quiet, [] { pcl::console::setVerbosityLevel(pcl::console::L_ERROR); });
   check_align_config(config);
   const auto t_start = Clock::now();
   auto m = std::make_shared<PreparedMap::Impl>();

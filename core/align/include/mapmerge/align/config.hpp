@@ -75,7 +75,7 @@ struct MatchConfig {
   int k_nearest = 3;             ///< target candidates per source keypoint in descriptor space [count]
   bool mutual = false;           ///< keep only mutual nearest neighbours (then k_nearest = 1)
   std::size_t max_correspondences = 3000;  ///< cap, best descriptor distance first [count]
-  int iterations = 5000;        ///< RANSAC / SAC-IA / prerejective iterations [count]
+  int iterations = 20000;       ///< RANSAC / SAC-IA / prerejective iterations [count]
   double edge_similarity = 0.9;  ///< prerejection: edge-length ratio of sampled triangles [0..1]
   double min_edge = 6.0;         ///< sampled keypoints at least this far apart [x res]
   double inlier_distance = 5.0;  ///< correspondence inlier distance for hypothesis scoring [x res]
@@ -90,10 +90,10 @@ struct ValidateConfig {
   double d_th = 2.0;             ///< pair distance counted in the fitness, Eq. 7 [x res]
   std::size_t n_th = 100;        ///< fewest pairs for a finite fitness, Eq. 8 [count]
   double min_inlier_fraction = 0.03;  ///< inliers / points of the smaller map, floor [0..1]
-  double max_fitness = 1.0;      ///< accepted only if the fitness is below [x res]
+  double max_fitness = 0.8;      ///< accepted only if the fitness is below [x res]
   double conflict_distance = 3.0;  ///< a point further than this from any occupied point and inside
                                    ///< the other map's known free space contradicts the transform [x res]
-  double min_inlier_share = 0.9;  ///< inliers / (inliers + contradictions) to accept [0..1]
+  double min_inlier_share = 0.93;  ///< inliers / (inliers + contradictions) to accept [0..1]
   double conflict_weight = 5.0;  ///< ranking score = inliers - conflict_weight * contradictions [ratio]
   double ambiguity_ratio = 0.85;  ///< reject when a distinct hypothesis scores at least this share of the best [0..1]
   double distinct_rotation_deg = 5.0;  ///< hypotheses differing more than this are distinct [deg]
