@@ -400,6 +400,44 @@ std::vector<Candidate> shortlist(std::vector<Candidate> all, const ValidateConfi
 
 std::size_t fine_samples(const ValidateConfig& c) { return c.coarse_points * 2; }
 
+/// Sorts refined candidates by score; empty string when the best passes every test and no
+/// distinct alternative comes close (repetitive corridors, symmetric rooms), else the reason.
+std::string select_best(std::vector<Candidate>& cands, const ValidateConfig& c, double res) {
+  const double w = c.conflict_weight;
+  std::sort(cands.begin(), cands.end(), [w](const Candidate& a, const Candidate& b) {
+    return score_of(a.fine, w) > score_of(b.fine, w);
+  });
+  const Candidate& best = cands.front();
+  std::string why = rejection(best.fine, c, res);
+  for (std::size_t i = 1; i < cands.size() && why.empty(); ++i) {
+    if (same_pose(best.T_refined, cands[i].T_refined, c.distinct_rotation_deg,
+                  c.distinct_translation * res))
+      continue;
+    const double ratio = score_of(cands[i].fine, w) / std::max(1.0, score_of(best.fine, w));
+    if (ratio >= c.ambiguity_ratio)
+      why = "ambiguous: a distinct transform scores " + std::to_string(ratio) + " of the best";
+  }
+  return why;
+}
+
+/// The final ICP pass with more points on the winner; kept when it validates at least as well.
+void polish(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
+            const AlignConfig& cfg, Candidate& best, StageTimings& t,
+            std::atomic<double>& validate_ms) {
+  const double res = scale_of(target, source);
+  auto t0 = Clock::now();
+  const Eigen::Matrix4d T = local_alignment(target, source, best.T_refined, cfg.refine, true);
+  t.refine_ms += ms_since(t0);
+  t0 = Clock::now();
+  const Validation v = check(target, source, T, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);
+  add_ms(validate_ms, t0);
+  const double w = cfg.validate.conflict_weight;
+  if (rejection(v, cfg.validate, res).empty() && score_of(v, w) >= 0.98 * score_of(best.fine, w)) {
+    best.T_refined = T;
+    best.fine = v;
+  }
+}
+
 }  // namespace
 
 AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
@@ -411,19 +449,20 @@ AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
   AlignResult result;
   add_prepare_timings(result.timings, target.timings);
   add_prepare_timings(result.timings, source.timings);
+  std::atomic<double> match_ms{0.0}, validate_ms{0.0};
   auto finish = [&](std::string reason) {
     result.reason = std::move(reason);
+    result.timings.match_ms = match_ms;
+    result.timings.validate_ms = validate_ms;
     result.timings.total_ms = ms_since(t_all);
     return result;
   };
   if (source.keypoints->size() < 3 || target.keypoints->size() < 3)
     return finish("too few keypoints (target " + std::to_string(target.keypoints->size()) +
                   ", source " + std::to_string(source.keypoints->size()) + ")");
-  std::atomic<double> match_ms{0.0}, validate_ms{0.0};
   auto t0 = Clock::now();
   const std::vector<Match> matches = match_descriptors(target, source, cfg.match);
   add_ms(match_ms, t0);
-
   t0 = Clock::now();
   const auto subsets = keypoint_subsets(source, cfg.submodels, res);
   result.timings.submodels_ms = ms_since(t0);
@@ -431,58 +470,27 @@ AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
       shortlist(search_blocks(target, source, matches, subsets, cfg, match_ms, validate_ms,
                               result.hypotheses),
                 cfg.validate, res);
-  result.timings.match_ms = match_ms;
-  if (cands.empty()) {
-    result.timings.validate_ms = validate_ms;
-    return finish("no hypothesis from " + std::to_string(matches.size()) + " correspondences");
-  }
+  if (cands.empty())
+    return finish("no hypothesis agrees with the maps (" + std::to_string(result.hypotheses) +
+                  " raw, from " + std::to_string(matches.size()) + " correspondences)");
   t0 = Clock::now();
   for (Candidate& c : cands)
     c.T_refined = local_alignment(target, source, c.h.T_target_source, cfg.refine, false);
   result.timings.refine_ms = ms_since(t0);
-
   t0 = Clock::now();
   for (Candidate& c : cands)
     c.fine = check(target, source, c.T_refined, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);
-  // Best by score; the distinct runner-up must be clearly worse (repetitive corridors).
-  const double w = cfg.validate.conflict_weight;
-  std::sort(cands.begin(), cands.end(), [w](const Candidate& a, const Candidate& b) {
-    return score_of(a.fine, w) > score_of(b.fine, w);
-  });
-  const Candidate& best = cands.front();
-  std::string why = rejection(best.fine, cfg.validate, res);
-  for (std::size_t i = 1; i < cands.size() && why.empty(); ++i) {
-    if (same_pose(best.T_refined, cands[i].T_refined, cfg.validate.distinct_rotation_deg,
-                  cfg.validate.distinct_translation * res))
-      continue;
-    if (score_of(cands[i].fine, w) >= cfg.validate.ambiguity_ratio * score_of(best.fine, w))
-      why = "ambiguous: a distinct transform scores " +
-            std::to_string(score_of(cands[i].fine, w) / std::max(1.0, score_of(best.fine, w))) + " of the best";
-  }
+  const std::string why = select_best(cands, cfg.validate, res);
   add_ms(validate_ms, t0);
-  Eigen::Matrix4d T_best = best.T_refined;
-  Validation v_best = best.fine;
-  if (why.empty()) {  // polish the winner with more points, keep it if it validates as well
-    t0 = Clock::now();
-    const Eigen::Matrix4d T_polished = local_alignment(target, source, T_best, cfg.refine, true);
-    result.timings.refine_ms += ms_since(t0);
-    t0 = Clock::now();
-    const Validation v = check(target, source, T_polished, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);
-    add_ms(validate_ms, t0);
-    if (rejection(v, cfg.validate, res).empty() && score_of(v, w) >= 0.98 * score_of(v_best, w)) {
-      T_best = T_polished;
-      v_best = v;
-    }
-  }
-  result.timings.validate_ms = validate_ms;
-  result.T_target_source = T_best;
-  result.fitness = v_best.fitness;
-  result.inliers = v_best.inliers;
-  result.overlap = v_best.overlap;
-  result.inlier_share = v_best.inlier_share;
-  result.submodel = best.h.submodel;
+  Candidate& best = cands.front();
+  if (why.empty()) polish(target, source, cfg, best, result.timings, validate_ms);
   result.accepted = why.empty();
-  if (!result.accepted) result.T_target_source = Eigen::Matrix4d::Identity();
+  result.T_target_source = result.accepted ? best.T_refined : Eigen::Matrix4d::Identity();
+  result.fitness = best.fine.fitness;
+  result.inliers = best.fine.inliers;
+  result.overlap = best.fine.overlap;
+  result.inlier_share = best.fine.inlier_share;
+  result.submodel = best.h.submodel;
   return finish(why);
 }
 
