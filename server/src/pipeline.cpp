@@ -82,13 +82,14 @@ void Pipeline::place(const std::string& robot) {
   if (!rec || !rec->tree) return;
   const std::string wanted = config_.merge.reference.empty() ? robot : config_.merge.reference;
   const std::string reference = registry_.claim_reference(wanted);
-  const bool was_aligned = registry_.poses().count(robot) != 0;
   if (robot == reference) {
-    if (!was_aligned) spdlog::info("robot {} defines the global frame", robot);
-    on_new_alignment(robot, !was_aligned);
+    if (rec->map_revision == 1) spdlog::info("robot {} defines the global frame", robot);
+    // Robots heard before the reference (or dropped by its new session) wait for this; the
+    // retry is a no-op for robots already tried against it.
+    on_new_alignment(robot, true);
     return;
   }
-  if (was_aligned) {
+  if (registry_.poses().count(robot) != 0) {
     if (config_.merge.refine_known) refine_known(*rec);
     on_new_alignment(robot, false);
     return;
@@ -140,13 +141,14 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
 void Pipeline::refine_known(const RobotRecord& rec) {
   const auto me = prepared(rec.robot_id);
   if (!me) return;
+  // The robot's own links to the group: edges where its map is the source. Edges of robots
+  // aligned to it keep their transform (a growing map does not move its frame).
   for (const Edge& e : registry_.edges_of(rec.robot_id)) {
-    const bool is_source = e.source == rec.robot_id;
-    const auto other = prepared(is_source ? e.target : e.source);
-    if (!other) continue;
+    if (e.source != rec.robot_id) continue;
+    const auto target = prepared(e.target);
+    if (!target) continue;
     const auto t0 = std::chrono::steady_clock::now();
-    const align::AlignResult res = is_source ? align_local(*other, *me, e.T_target_source, config_.align)
-                                             : align_local(*me, *other, e.T_target_source, config_.align);
+    const align::AlignResult res = align_local(*target, *me, e.T_target_source, config_.align);
     report({e.target, e.source, res.accepted, false, res.fitness, seconds_since(t0), res.reason, unix_now()});
     if (res.accepted) registry_.put_edge(Edge{e.target, e.source, res.T_target_source, res.fitness});
   }

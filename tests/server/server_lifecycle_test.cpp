@@ -140,6 +140,20 @@ TEST_F(ServerFleet, Ros2OctomapRobotJoins) {
   EXPECT_GT(op.ros_global_bytes(), 1000u);
 }
 
+TEST_F(ServerFleet, RobotHeardBeforeTheReferenceIsAlignedWhenItArrives) {
+  auto server = start_server({"--reference", "r1"});
+  FleetListener op(domain);
+  RobotPublisher r2(domain, "r2");
+  r2.publish(*fleet().robots[1].tree);
+  ASSERT_TRUE(op.wait_for([&] { return op.poses().count("r2") == 1; }, 60s)) << server->log();
+  EXPECT_EQ(op.poses().at("r2").status, 0);  // nothing to align with yet
+  RobotPublisher r1(domain, "r1");
+  r1.publish(*fleet().robots[0].tree);
+  ASSERT_TRUE(op.wait_for([&] { return aligned(op, {"r1", "r2"}) && global_has(op, 2); }, kMergeTimeout))
+      << server->log();
+  EXPECT_LT(translation_error_m(fleet().truth(1), op.poses().at("r2").T_global_robot), kMaxTranslationM);
+}
+
 TEST_F(ServerFleet, BadMapsAreRejectedAndCountedWithoutHarm) {
   auto server = start_server();
   RobotPublisher r1(domain, "r1");
