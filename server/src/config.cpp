@@ -39,12 +39,15 @@ void read_network(const YAML::Node& n, NetworkConfig& c) {
 }
 
 void read_merge(const YAML::Node& n, MergeConfig& c) {
-  check_keys(n, "merge", {"threads", "reference", "global_frame", "global_resolution", "refine_known"});
+  check_keys(n, "merge", {"threads", "reference", "global_frame", "global_resolution", "refine_known",
+                          "refine_republish_translation", "refine_republish_rotation_deg"});
   read(n, "threads", c.threads, "merge");
   read(n, "reference", c.reference, "merge");
   read(n, "global_frame", c.global_frame, "merge");
   read(n, "global_resolution", c.global_resolution, "merge");
   read(n, "refine_known", c.refine_known, "merge");
+  read(n, "refine_republish_translation", c.refine_republish_translation, "merge");
+  read(n, "refine_republish_rotation_deg", c.refine_republish_rotation_deg, "merge");
 }
 
 void read_publish(const YAML::Node& n, PublishConfig& c) {

@@ -90,8 +90,10 @@ void Pipeline::place(const std::string& robot) {
     return;
   }
   if (registry_.poses().count(robot) != 0) {
-    if (config_.merge.refine_known) refine_known(*rec);
-    on_new_alignment(robot, false);
+    // A growing map keeps its frame: fuse it at once with the known transform, then polish the
+    // transform locally and republish only if that moved the robot noticeably.
+    if (hooks_.changed) hooks_.changed();
+    if (config_.merge.refine_known && refine_known(*rec)) on_new_alignment(robot, false);
     return;
   }
   search_unknown(*rec);
@@ -138,9 +140,10 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
   }
 }
 
-void Pipeline::refine_known(const RobotRecord& rec) {
+bool Pipeline::refine_known(const RobotRecord& rec) {
   const auto me = prepared(rec.robot_id);
-  if (!me) return;
+  if (!me) return false;
+  bool moved = false;
   // The robot's own links to the group: edges where its map is the source. Edges of robots
   // aligned to it keep their transform (a growing map does not move its frame).
   for (const Edge& e : registry_.edges_of(rec.robot_id)) {
@@ -150,8 +153,18 @@ void Pipeline::refine_known(const RobotRecord& rec) {
     const auto t0 = std::chrono::steady_clock::now();
     const align::AlignResult res = align_local(*target, *me, e.T_target_source, config_.align);
     report({e.target, e.source, res.accepted, false, res.fitness, seconds_since(t0), res.reason, unix_now()});
-    if (res.accepted) registry_.put_edge(Edge{e.target, e.source, res.T_target_source, res.fitness});
+    if (!res.accepted) continue;
+    registry_.put_edge(Edge{e.target, e.source, res.T_target_source, res.fitness});
+    moved |= moved_noticeably(e.T_target_source, res.T_target_source);
   }
+  return moved;
+}
+
+bool Pipeline::moved_noticeably(const Eigen::Matrix4d& before, const Eigen::Matrix4d& after) const {
+  const Eigen::Matrix4d d = rigid_inverse(before) * after;
+  const double angle = std::acos(std::clamp((d.topLeftCorner<3, 3>().trace() - 1.0) / 2.0, -1.0, 1.0));
+  return d.topRightCorner<3, 1>().norm() > config_.merge.refine_republish_translation ||
+         angle * 180.0 / M_PI > config_.merge.refine_republish_rotation_deg;
 }
 
 void Pipeline::on_new_alignment(const std::string& robot, bool joined) {

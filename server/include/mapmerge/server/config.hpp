@@ -23,6 +23,8 @@ struct MergeConfig {
   std::string global_frame = "global";  ///< frame id of the global map and poses
   double global_resolution = 0.0;    ///< voxel edge of the global map [m]; 0: the reference's
   bool refine_known = true;          ///< refine a known robot's transform when its map changes
+  double refine_republish_translation = 0.02;  ///< a refinement moving a robot more than this republishes [m]
+  double refine_republish_rotation_deg = 0.1;  ///< ... or turning it more than this [deg]
 };
 
 /// When the global map and poses go out (read by the server's main loop).

@@ -49,7 +49,9 @@ class Pipeline {
   bool ingest(const MapSample& map, bool persist);
   void warn_on_resolution(const std::string& robot, double resolution) const;
   void place(const std::string& robot);
-  void refine_known(const RobotRecord& robot);
+  /// Refines the robot's own edges; true when a transform moved noticeably.
+  bool refine_known(const RobotRecord& robot);
+  bool moved_noticeably(const Eigen::Matrix4d& before, const Eigen::Matrix4d& after) const;
   void search_unknown(const RobotRecord& robot);
   std::shared_ptr<const align::PreparedMap> prepared(const std::string& robot);
   /// Persists alignments, asks for a republish and, when `joined` (the aligned group grew),
