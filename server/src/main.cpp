@@ -67,7 +67,12 @@ int main(int argc, char** argv) {
                  "HOST:PORT of a Fast DDS discovery server (default: $ROS_DISCOVERY_SERVER)");
   app.add_option("--threads", f.threads, "merge worker threads")->check(CLI::Range(1, 256));
   app.add_option("--log-level", f.log_level, "trace, debug, info, warn, error");
-  CLI11_PARSE(app, argc, argv);
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    app.exit(e);  // prints help or the error
+    return e.get_exit_code() == 0 ? kOk : kUsageError;
+  }
 
   spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e %^%l%$ %v");
   spdlog::set_level(spdlog::level::from_str(f.log_level));

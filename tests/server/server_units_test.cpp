@@ -4,11 +4,13 @@
 #include <atomic>
 #include <condition_variable>
 #include <filesystem>
+#include <fstream>
 #include <mutex>
 
 #include <gtest/gtest.h>
 
 #include "fleet.hpp"
+#include "server_process.hpp"
 #include "mapmerge/align/map_cut.hpp"
 #include "mapmerge/server/config.hpp"
 #include "mapmerge/server/pose_graph.hpp"
@@ -162,6 +164,18 @@ TEST(Config, ReadsSectionsAndRejectsUnknownKeys) {
   EXPECT_THROW(parse_server_config("network: {domain: 200}\n"), align::ConfigError);
   EXPECT_THROW(parse_server_config("merge: {threads: many}\n"), align::ConfigError);
   EXPECT_EQ(parse_server_config("").merge.threads, 2);
+}
+
+TEST(ServerExitCodes, UsageAndStoreErrorsAreDistinct) {
+  const std::string dir = test::temp_dir("exit_codes");
+  const auto run = [&](const std::vector<std::string>& args) {
+    test::ServerProcess p(args, dir + "/server.log");
+    return p.kill(0, std::chrono::seconds(30));  // signal 0: just wait for the exit
+  };
+  EXPECT_EQ(run({"--domain", "300"}), 2);
+  std::ofstream(dir + "/bad.yaml") << "merge: {threads: 0}\n";
+  EXPECT_EQ(run({"--config", dir + "/bad.yaml"}), 2);
+  EXPECT_EQ(run({"--state-dir", "/proc/mapmerge-cannot-exist", "--domain", "101"}), 3);
 }
 
 }  // namespace
