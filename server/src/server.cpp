@@ -128,9 +128,14 @@ void Server::publish_global() {
   }
   last_global_ = std::move(global);
   republish();
-  spdlog::info("global map {} published: {} robots, {} bytes, built in {:.3f} s", version_,
+  std::string unaligned;
+  for (const PoseOut& p : poses) {
+    if (p.state != PoseState::kAligned) unaligned += " " + p.robot_id;
+  }
+  spdlog::info("global map {} published: {} robots, {} bytes, built in {:.3f} s; poses of {} robots{}{}", version_,
                last_global_->contributors.size(), last_global_->data.size(),
-               std::chrono::duration<double>(Clock::now() - t0).count());
+               std::chrono::duration<double>(Clock::now() - t0).count(), poses.size(),
+               unaligned.empty() ? "" : ", not aligned:", unaligned);
 }
 
 void Server::republish() {
