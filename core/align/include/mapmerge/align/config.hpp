@@ -93,7 +93,7 @@ struct ValidateConfig {
   double max_fitness = 0.8;      ///< accepted only if the fitness is below [x res]
   double conflict_distance = 3.0;  ///< a point further than this from any occupied point and inside
                                    ///< the other map's known free space contradicts the transform [x res]
-  double min_inlier_share = 0.93;  ///< inliers / (inliers + contradictions) to accept [0..1]
+  double min_inlier_share = 0.98;  ///< inliers / (inliers + contradictions) to accept [0..1]
   double conflict_weight = 5.0;  ///< ranking score = inliers - conflict_weight * contradictions [ratio]
   double ambiguity_ratio = 0.85;  ///< reject when a distinct hypothesis scores at least this share of the best [0..1]
   double distinct_rotation_deg = 5.0;  ///< hypotheses differing more than this are distinct [deg]
