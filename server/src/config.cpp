@@ -31,11 +31,14 @@ void read(const YAML::Node& node, const char* key, T& out, const std::string& se
 }
 
 void read_network(const YAML::Node& n, NetworkConfig& c) {
-  check_keys(n, "network", {"domain", "profile", "discovery_server", "ros_octomap_pattern"});
+  check_keys(n, "network", {"domain", "profile", "discovery_server", "ros_octomap_pattern", "security_keystore",
+                            "security_enclave"});
   read(n, "domain", c.domain, "network");
   read(n, "profile", c.profile, "network");
   read(n, "discovery_server", c.discovery_server, "network");
   read(n, "ros_octomap_pattern", c.ros_octomap_pattern, "network");
+  read(n, "security_keystore", c.security_keystore, "network");
+  read(n, "security_enclave", c.security_enclave, "network");
 }
 
 void read_merge(const YAML::Node& n, MergeConfig& c) {
@@ -80,6 +83,7 @@ void check(const ServerConfig& c) {
     throw ConfigError("publish periods must be positive");
   }
   if (!parse_encoding(c.publish.global_encoding)) throw ConfigError("publish.global_encoding is not an encoding");
+  if (c.network.security_enclave.empty()) throw ConfigError("network.security_enclave must not be empty");
   if (c.network.ros_octomap_pattern.find("{robot}") == std::string::npos) {
     throw ConfigError("network.ros_octomap_pattern must contain {robot}");
   }

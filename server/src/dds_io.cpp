@@ -112,6 +112,12 @@ class RequestListener : public fdds::DataReaderListener {
   std::function<void(const std::string&)> sink_;
 };
 
+/// The explicit keystore, else ROS 2's ROS_SECURITY_* environment, else off.
+wire::SecurityOptions security_options(const NetworkConfig& config) {
+  if (config.security_keystore.empty()) return wire::SecurityOptions::from_environment(config.security_enclave);
+  return wire::SecurityOptions{config.security_keystore, config.security_enclave};
+}
+
 }  // namespace
 
 struct DdsIo::Impl {
@@ -132,7 +138,19 @@ struct DdsIo::Impl {
         discovery(config.ros_octomap_pattern, callbacks.on_discovery),
         request_listener(callbacks.on_request) {}
 
-  void subscribe(const RobotTopic& t) {
+  /// Creates a reader for `t`; false (logged) when DDS refuses it, e.g. a topic outside the
+  /// server's permissions: one bad topic never stops the server.
+  bool subscribe(const RobotTopic& t) {
+    try {
+      create_reader(t);
+      return true;
+    } catch (const wire::DdsError& e) {
+      spdlog::warn("robot topic {}: no reader ({}); skipped", t.name, e.what());
+      return false;
+    }
+  }
+
+  void create_reader(const RobotTopic& t) {
     auto& p = *participant;
     if (t.ros) {
       auto l = std::make_unique<MapReaderListener<OctomapMsg>>(t, callbacks.on_map);
@@ -154,6 +172,8 @@ DdsIo::DdsIo(const NetworkConfig& config, Callbacks callbacks)
   options.profile.discovery_server = config.discovery_server;
   options.name = "mapmerge-server";
   options.discover_all_topics = true;  // robots' map topics appear in discovery before we read them
+  options.security = security_options(config);
+  spdlog::info("DDS security: {}", options.security.describe());
   impl_->participant = std::make_unique<wire::FastddsParticipant>(options, &impl_->discovery,
                                                                   fdds::StatusMask::none());
   auto& p = *impl_->participant;
@@ -175,8 +195,7 @@ DdsIo::~DdsIo() {
 std::vector<std::string> DdsIo::service() {
   std::vector<std::string> names;
   for (const RobotTopic& t : impl_->discovery.take()) {
-    impl_->subscribe(t);
-    names.push_back(t.name);
+    if (impl_->subscribe(t)) names.push_back(t.name);
   }
   return names;
 }

@@ -21,7 +21,7 @@ using mapmerge::server::ServerConfig;
 enum ExitCode { kOk = 0, kRuntimeError = 1, kUsageError = 2, kStoreError = 3 };
 
 struct Flags {
-  std::string config_file, state_dir, profile, reference, discovery_server, log_level = "info";
+  std::string config_file, state_dir, profile, reference, discovery_server, keystore, enclave, log_level = "info";
   int domain = -1;
   int threads = 0;
 };
@@ -34,6 +34,8 @@ ServerConfig make_config(const Flags& f) {
   if (!f.profile.empty()) c.network.profile = f.profile;
   if (!f.reference.empty()) c.merge.reference = f.reference;
   if (f.threads > 0) c.merge.threads = f.threads;
+  if (!f.keystore.empty()) c.network.security_keystore = f.keystore;
+  if (!f.enclave.empty()) c.network.security_enclave = f.enclave;
   if (!f.discovery_server.empty()) {
     c.network.discovery_server = f.discovery_server;
   } else if (const char* env = std::getenv("ROS_DISCOVERY_SERVER"); env && c.network.discovery_server.empty()) {
@@ -65,6 +67,10 @@ int main(int argc, char** argv) {
   app.add_option("--reference", f.reference, "robot whose map frame is the global frame (default: first heard)");
   app.add_option("--discovery-server", f.discovery_server,
                  "HOST:PORT of a Fast DDS discovery server (default: $ROS_DISCOVERY_SERVER)");
+  app.add_option("--keystore", f.keystore,
+                 "DDS Security keystore (scripts/make-keystore); default: ROS_SECURITY_KEYSTORE when "
+                 "ROS_SECURITY_ENABLE=true, else security off");
+  app.add_option("--enclave", f.enclave, "the server's enclave in the keystore (default: mapmerge_server)");
   app.add_option("--threads", f.threads, "merge worker threads")->check(CLI::Range(1, 256));
   app.add_option("--log-level", f.log_level, "trace, debug, info, warn, error");
   try {
@@ -79,6 +85,9 @@ int main(int argc, char** argv) {
   ServerConfig config;
   try {
     config = make_config(f);
+    if (!config.network.security_keystore.empty()) {  // a missing or unreadable enclave is a configuration error
+      (void)mapmerge::wire::SecurityOptions{config.network.security_keystore, config.network.security_enclave}.files();
+    }
   } catch (const std::exception& e) {
     std::cerr << "mapmerge-server: " << e.what() << "\n";
     return kUsageError;

@@ -29,10 +29,13 @@ std::shared_ptr<const octomap::OcTree> load_data_map(const std::string& name) {
   return read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/" + name);
 }
 
-RobotPublisher::RobotPublisher(int domain, const std::string& id, const wire::ProfileSpec& profile) : id_(id) {
+RobotPublisher::RobotPublisher(int domain, const std::string& id, const wire::ProfileSpec& profile,
+                               const wire::SecurityOptions& security)
+    : id_(id) {
   wire::ParticipantOptions o;
   o.domain = domain;
   o.profile = profile;
+  o.security = security;
   o.name = "robot_" + id;
   participant_ = std::make_unique<wire::FastddsParticipant>(o);
   writer_ = participant_->create_writer(participant_->topic<mapmerge::MapUpdatePubSubType>(wire::map_topic(id)),

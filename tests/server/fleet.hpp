@@ -33,7 +33,9 @@ std::shared_ptr<const octomap::OcTree> load_data_map(const std::string& name);
 /// A robot publishing native MapUpdates on rt/<id>/mapmerge/map.
 class RobotPublisher {
  public:
-  RobotPublisher(int domain, const std::string& id, const wire::ProfileSpec& profile = {});
+  /// `security`: the robot's DDS Security identity (default: off).
+  RobotPublisher(int domain, const std::string& id, const wire::ProfileSpec& profile = {},
+                 const wire::SecurityOptions& security = {});
   ~RobotPublisher();
   /// Publishes `tree` (sequence numbers count from 1 unless given).
   void publish(const octomap::OcTree& tree, const std::string& session = "s1", std::uint64_t sequence = 0);
@@ -94,7 +96,8 @@ struct ReceivedStatus {
 /// An operator's view: latest global map (native and ROS 2), poses, tf child frames.
 class FleetListener {
  public:
-  explicit FleetListener(int domain, const wire::ProfileSpec& profile = {});
+  /// `security`: the operator's DDS Security identity (an observer enclave; default: off).
+  explicit FleetListener(int domain, const wire::ProfileSpec& profile = {}, const wire::SecurityOptions& security = {});
   ~FleetListener();
 
   /// Waits until `pred()` holds (checked on every sample and every 100 ms) or `timeout`.

@@ -101,10 +101,12 @@ struct FleetListener::Impl {
   }
 };
 
-FleetListener::FleetListener(int domain, const wire::ProfileSpec& profile) : impl_(std::make_unique<Impl>()) {
+FleetListener::FleetListener(int domain, const wire::ProfileSpec& profile, const wire::SecurityOptions& security)
+    : impl_(std::make_unique<Impl>()) {
   wire::ParticipantOptions o;
   o.domain = domain;
   o.profile = profile;
+  o.security = security;
   o.name = "fleet_listener";
   impl_->participant = std::make_unique<wire::FastddsParticipant>(o);
   Impl* impl = impl_.get();

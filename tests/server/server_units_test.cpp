@@ -166,6 +166,16 @@ TEST(Config, ReadsSectionsAndRejectsUnknownKeys) {
   EXPECT_EQ(parse_server_config("").merge.threads, 2);
 }
 
+TEST(Config, SecuritySettings) {
+  const ServerConfig d = parse_server_config("");
+  EXPECT_TRUE(d.network.security_keystore.empty());
+  EXPECT_EQ(d.network.security_enclave, "mapmerge_server");
+  const ServerConfig c = parse_server_config("network: {security_keystore: /etc/keys, security_enclave: base2}\n");
+  EXPECT_EQ(c.network.security_keystore, "/etc/keys");
+  EXPECT_EQ(c.network.security_enclave, "base2");
+  EXPECT_THROW(parse_server_config("network: {security_enclave: \"\"}\n"), align::ConfigError);
+}
+
 TEST(ServerExitCodes, UsageAndStoreErrorsAreDistinct) {
   const std::string dir = test::temp_dir("exit_codes");
   const auto run = [&](const std::vector<std::string>& args) {

@@ -14,6 +14,9 @@ struct NetworkConfig {
   std::string profile = "local";     ///< "local", "default" or a Fast DDS XML file
   std::string discovery_server;      ///< "HOST:PORT" of a Fast DDS discovery server; empty: none
   std::string ros_octomap_pattern = "rt/{robot}/octomap_binary";  ///< ROS 2 map topics, "{robot}" = id
+  std::string security_keystore;     ///< DDS Security keystore (scripts/make-keystore); empty: ROS 2's
+                                     ///< ROS_SECURITY_* environment, else security off
+  std::string security_enclave = "mapmerge_server";  ///< the server's enclave in the keystore
 };
 
 /// The merge policy (read by Pipeline and Scheduler).
