@@ -68,9 +68,12 @@ void read_store(const YAML::Node& n, StoreConfig& c) {
 }
 
 void read_limits(const YAML::Node& n, DecodeLimits& c) {
-  check_keys(n, "limits", {"max_bytes", "max_nodes", "min_resolution", "max_resolution"});
+  check_keys(n, "limits", {"max_bytes", "max_nodes", "max_occupied_voxels", "max_fusion_work", "min_resolution",
+                           "max_resolution"});
   read(n, "max_bytes", c.max_bytes, "limits");
   read(n, "max_nodes", c.max_nodes, "limits");
+  read(n, "max_occupied_voxels", c.max_occupied_voxels, "limits");
+  read(n, "max_fusion_work", c.max_fusion_work, "limits");
   read(n, "min_resolution", c.min_resolution, "limits");
   read(n, "max_resolution", c.max_resolution, "limits");
 }
@@ -83,6 +86,7 @@ void check(const ServerConfig& c) {
     throw ConfigError("publish periods must be positive");
   }
   if (!parse_encoding(c.publish.global_encoding)) throw ConfigError("publish.global_encoding is not an encoding");
+  if (!(c.limits.max_fusion_work > 0.0)) throw ConfigError("limits.max_fusion_work must be positive");
   if (c.network.security_enclave.empty()) throw ConfigError("network.security_enclave must not be empty");
   if (c.network.ros_octomap_pattern.find("{robot}") == std::string::npos) {
     throw ConfigError("network.ros_octomap_pattern must contain {robot}");

@@ -2,6 +2,8 @@
 
 #include <algorithm>
 
+#include <spdlog/spdlog.h>
+
 #include "mapmerge/server/merge_ops.hpp"
 
 namespace mapmerge::server {
@@ -34,12 +36,23 @@ std::optional<GlobalMapOut> build_global_map(const Registry& registry, const Ser
   for (const auto& [robot, pose] : registry.poses()) {
     const auto rec = registry.get(robot);
     if (!rec || !rec->tree) continue;
-    maps.push_back(PlacedMap{rec->tree, pose.T_global_robot});
+    maps.push_back(PlacedMap{robot, rec->tree, pose.T_global_robot});
     g.contributors.push_back(Contribution{robot, rec->session_id, rec->sequence});
   }
   if (maps.empty()) return std::nullopt;
   const double resolution = global_resolution(registry, config, maps);
-  const auto tree = fuse_global(maps, resolution);
+  const FusedGlobal fused = fuse_global(maps, resolution, config.limits.max_fusion_work);
+  for (const auto& [robot, reason] : fused.skipped) {
+    spdlog::warn("robot {}: map left out of the global map: {}", robot, reason);
+  }
+  if (!fused.tree) return std::nullopt;
+  g.contributors.erase(std::remove_if(g.contributors.begin(), g.contributors.end(),
+                                      [&](const Contribution& c) {
+                                        return std::find(fused.fused.begin(), fused.fused.end(), c.robot_id) ==
+                                               fused.fused.end();
+                                      }),
+                       g.contributors.end());
+  const auto& tree = fused.tree;
   const Encoding encoding = parse_encoding(config.publish.global_encoding).value_or(Encoding::kOctomapBt);
   g.version = version;
   g.stamp_unix = unix_now();

@@ -1,8 +1,10 @@
 #include "mapmerge/server/merge_ops.hpp"
 
+#include <cmath>
 #include <exception>
 
 #include "mapmerge/map/fusion.hpp"
+#include "mapmerge/map/map_io.hpp"
 #include "mapmerge/wire/topics.hpp"
 
 namespace mapmerge::server {
@@ -56,11 +58,30 @@ align::AlignResult align_local(const align::PreparedMap& target, const align::Pr
   return align::refine(target, source, T_target_source, config);
 }
 
-std::unique_ptr<octomap::OcTree> fuse_global(const std::vector<PlacedMap>& maps, double resolution) {
-  std::vector<MapInGlobal> in;
-  in.reserve(maps.size());
-  for (const PlacedMap& m : maps) in.emplace_back(m.tree.get(), m.T_global_robot);
-  return fuse_maps(in, resolution);
+FusedGlobal fuse_global(const std::vector<PlacedMap>& maps, double resolution, double max_work) {
+  FusedGlobal out;
+  if (!(resolution > 0.0) || !std::isfinite(resolution)) {
+    for (const PlacedMap& m : maps) out.skipped.emplace_back(m.robot, "global resolution is not positive");
+    return out;
+  }
+  auto tree = std::make_unique<octomap::OcTree>(resolution);
+  FuseConfig config;
+  config.prune = false;  // once, at the end
+  config.max_work = max_work;
+  for (const PlacedMap& m : maps) {
+    try {
+      if (!m.tree) throw MapError("no map");
+      const FuseResult r = fuse_into(*tree, *m.tree, m.T_global_robot, config);  // !ok: tree untouched
+      if (!r.ok) throw MapError(r.reason);
+      out.fused.push_back(m.robot);
+    } catch (const std::exception& e) {
+      out.skipped.emplace_back(m.robot, e.what());
+    }
+  }
+  if (out.fused.empty()) return out;
+  tree->prune();
+  out.tree = std::move(tree);
+  return out;
 }
 
 }  // namespace mapmerge::server

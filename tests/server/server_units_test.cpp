@@ -13,6 +13,7 @@
 #include "server_process.hpp"
 #include "mapmerge/align/map_cut.hpp"
 #include "mapmerge/server/config.hpp"
+#include "mapmerge/server/merge_ops.hpp"
 #include "mapmerge/server/pose_graph.hpp"
 #include "mapmerge/server/registry.hpp"
 #include "mapmerge/server/scheduler.hpp"
@@ -174,6 +175,50 @@ TEST(Config, SecuritySettings) {
   EXPECT_EQ(c.network.security_keystore, "/etc/keys");
   EXPECT_EQ(c.network.security_enclave, "base2");
   EXPECT_THROW(parse_server_config("network: {security_enclave: \"\"}\n"), align::ConfigError);
+}
+
+TEST(Config, LimitsIncludeOccupiedVoxelsAndFusionWork) {
+  const ServerConfig c = parse_server_config("limits: {max_occupied_voxels: 1234, max_fusion_work: 2.5e7}\n");
+  EXPECT_EQ(c.limits.max_occupied_voxels, 1234u);
+  EXPECT_DOUBLE_EQ(c.limits.max_fusion_work, 2.5e7);
+  EXPECT_THROW(parse_server_config("limits: {max_fusion_work: 0}\n"), align::ConfigError);
+}
+
+std::shared_ptr<const octomap::OcTree> small_tree(double x) {
+  auto t = std::make_shared<octomap::OcTree>(0.1);
+  for (int i = 0; i < 10; ++i) t->updateNode(octomap::point3d(static_cast<float>(x), 0.1f * i, 0.5f), true);
+  return t;
+}
+
+TEST(FuseGlobal, OneBadMapIsSkippedAndTheOthersFused) {
+  Eigen::Matrix4d not_rigid = Eigen::Matrix4d::Identity();
+  not_rigid(0, 0) = 2.0;  // a scale: fuse_into refuses it
+  const std::vector<PlacedMap> maps{{"r1", small_tree(0.0), Eigen::Matrix4d::Identity()},
+                                    {"r2", small_tree(1.0), not_rigid},
+                                    {"r3", nullptr, Eigen::Matrix4d::Identity()},
+                                    {"r4", small_tree(2.0), Eigen::Matrix4d::Identity()}};
+  const FusedGlobal g = fuse_global(maps, 0.1, 5e8);
+  ASSERT_TRUE(g.tree);
+  EXPECT_EQ(g.fused, (std::vector<std::string>{"r1", "r4"}));
+  ASSERT_EQ(g.skipped.size(), 2u);
+  EXPECT_EQ(g.skipped[0].first, "r2");
+  EXPECT_EQ(g.skipped[1].first, "r3");
+  EXPECT_FALSE(g.skipped[0].second.empty());
+  const auto* r1 = g.tree->search(0.05, 0.05, 0.55);
+  const auto* r4 = g.tree->search(2.05, 0.05, 0.55);
+  ASSERT_TRUE(r1 && r4);
+  EXPECT_TRUE(g.tree->isNodeOccupied(*r1) && g.tree->isNodeOccupied(*r4));
+  EXPECT_EQ(g.tree->search(1.05, 0.05, 0.55), nullptr);  // r2 left out
+}
+
+TEST(FuseGlobal, FusionWorkLimitAndBadResolutionLeaveNothingFused) {
+  const std::vector<PlacedMap> maps{{"r1", small_tree(0.0), Eigen::Matrix4d::Identity()}};
+  const FusedGlobal tiny = fuse_global(maps, 0.1, 1e-9);
+  EXPECT_FALSE(tiny.tree);
+  ASSERT_EQ(tiny.skipped.size(), 1u);
+  const FusedGlobal bad = fuse_global(maps, 0.0, 5e8);
+  EXPECT_FALSE(bad.tree);
+  EXPECT_EQ(bad.skipped.size(), 1u);
 }
 
 TEST(ServerExitCodes, UsageAndStoreErrorsAreDistinct) {

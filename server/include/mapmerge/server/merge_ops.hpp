@@ -41,11 +41,21 @@ align::AlignResult align_local(const align::PreparedMap& target, const align::Pr
 
 /// One robot's map with its pose in the global frame.
 struct PlacedMap {
+  std::string robot;                 ///< robot id (for skip reports)
   std::shared_ptr<const octomap::OcTree> tree;
   Eigen::Matrix4d T_global_robot = Eigen::Matrix4d::Identity();
 };
 
+/// The fused global tree and the robots left out of it.
+struct FusedGlobal {
+  std::unique_ptr<octomap::OcTree> tree;  ///< null when nothing could be fused
+  std::vector<std::string> fused;         ///< robots whose map is in `tree`, in input order
+  std::vector<std::pair<std::string, std::string>> skipped;  ///< (robot, reason) left out
+};
+
 /// Fuses the maps into a new global tree of `resolution` [m] (log-odds addition, resampled).
-std::unique_ptr<octomap::OcTree> fuse_global(const std::vector<PlacedMap>& maps, double resolution);
+/// A map that core refuses (non-rigid pose, fusion work above `max_work`, MapError or any other
+/// exception) is skipped with its reason; the others are fused regardless.
+FusedGlobal fuse_global(const std::vector<PlacedMap>& maps, double resolution, double max_work);
 
 }  // namespace mapmerge::server
