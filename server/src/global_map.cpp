@@ -75,7 +75,7 @@ std::vector<PoseOut> pose_outputs(const Registry& registry) {
     if (it != poses.end()) {
       p.T_global_robot = it->second.T_global_robot;
       p.fitness = it->second.fitness;
-      p.quality = 1.0 / (1.0 + it->second.hops);
+      p.quality = it->second.quality >= 0.0 ? it->second.quality : 1.0 / (1.0 + it->second.hops);
       p.state = PoseState::kAligned;
     } else {
       p.state = to_pose_state(registry.status(rec->robot_id));

@@ -3,11 +3,25 @@
 #include <cmath>
 #include <exception>
 
+#include <Eigen/Geometry>
+
+#include "mapmerge/graph/information.hpp"
 #include "mapmerge/map/fusion.hpp"
 #include "mapmerge/map/map_io.hpp"
 #include "mapmerge/wire/topics.hpp"
 
 namespace mapmerge::server {
+namespace {
+
+Eigen::AlignedBox3d bounding_box(const octomap::OcTree& tree) {
+  double x0, y0, z0, x1, y1, z1;
+  tree.getMetricMin(x0, y0, z0);
+  tree.getMetricMax(x1, y1, z1);
+  if (tree.size() == 0) return Eigen::AlignedBox3d();  // empty
+  return Eigen::AlignedBox3d(Eigen::Vector3d(x0, y0, z0), Eigen::Vector3d(x1, y1, z1));
+}
+
+}  // namespace
 
 DecodedMap decode_sample(const MapSample& s, const DecodeLimits& limits) {
   DecodedMap out;
@@ -56,6 +70,17 @@ align::AlignResult align_global(const align::PreparedMap& target, const align::P
 align::AlignResult align_local(const align::PreparedMap& target, const align::PreparedMap& source,
                                const Eigen::Matrix4d& T_target_source, const align::AlignConfig& config) {
   return align::refine(target, source, T_target_source, config);
+}
+
+Edge make_edge(const RobotRecord& target, const RobotRecord& source, const align::AlignResult& result) {
+  Edge e{target.robot_id, source.robot_id, result.T_target_source, result.fitness};
+  e.inliers = result.inliers;
+  e.overlap = result.overlap;
+  if (target.tree && source.tree) {
+    const Eigen::Isometry3d T(result.T_target_source);
+    e.pivot_source = graph::overlap_pivot(bounding_box(*source.tree), bounding_box(*target.tree), T);
+  }
+  return e;
 }
 
 FusedGlobal fuse_global(const std::vector<PlacedMap>& maps, double resolution, double max_work) {

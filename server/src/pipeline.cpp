@@ -133,7 +133,7 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
     report({other->robot_id, rec.robot_id, res.accepted, true, res.fitness, seconds_since(t0), res.reason, unix_now()});
     registry_.mark_tried(rec.robot_id, rec.map_revision, tried_key(*other));
     if (res.accepted) {
-      registry_.put_edge(Edge{other->robot_id, rec.robot_id, res.T_target_source, res.fitness});
+      registry_.put_edge(make_edge(*other, rec, res));
       on_new_alignment(rec.robot_id, true);
       return;
     }
@@ -154,7 +154,7 @@ bool Pipeline::refine_known(const RobotRecord& rec) {
     const align::AlignResult res = align_local(*target, *me, e.T_target_source, config_.align);
     report({e.target, e.source, res.accepted, false, res.fitness, seconds_since(t0), res.reason, unix_now()});
     if (!res.accepted) continue;
-    registry_.put_edge(Edge{e.target, e.source, res.T_target_source, res.fitness});
+    if (const auto target_rec = registry_.get(e.target)) registry_.put_edge(make_edge(*target_rec, rec, res));
     moved |= moved_noticeably(e.T_target_source, res.T_target_source);
   }
   return moved;

@@ -1,6 +1,30 @@
 #include "mapmerge/server/registry.hpp"
 
+#include <set>
+#include <stdexcept>
+
+#include <spdlog/spdlog.h>
+
 namespace mapmerge::server {
+namespace {
+
+/// Information of an alignment edge (graph/information.hpp). A restored edge carries no inlier
+/// count or overlap: it is taken as a typical alignment of its fitness.
+graph::Matrix6d edge_information(const Edge& e, const graph::InformationConfig& config) {
+  graph::AlignmentQuality q{e.inliers, e.fitness, e.overlap, e.pivot_source};
+  if (q.inliers == 0) {
+    q.inliers = static_cast<std::size_t>(config.reference_inliers);
+    q.overlap = config.reference_overlap;
+  }
+  graph::EdgeInformation info = graph::information_from_alignment(q, config);
+  if (!info.valid) {
+    q.fitness = config.min_fitness;
+    info = graph::information_from_alignment(q, config);
+  }
+  return info.information;
+}
+
+}  // namespace
 
 const char* to_string(RobotStatus status) {
   switch (status) {
@@ -55,6 +79,7 @@ void Registry::put_map(RobotRecord record) {
       const bool involved = it->first.first == r.robot_id || it->first.second == r.robot_id;
       it = involved ? edges_.erase(it) : std::next(it);
     }
+    graph_stale_ = true;
   }
   record.map_revision = r.map_revision + 1;
   record.updates_accepted = r.updates_accepted + 1;
@@ -92,6 +117,7 @@ void Registry::put_edge(const Edge& edge) {
   std::lock_guard<std::mutex> lock(mutex_);
   edges_.erase({edge.source, edge.target});
   edges_[{edge.target, edge.source}] = edge;
+  graph_stale_ = true;
 }
 
 std::vector<Edge> Registry::edges() const {
@@ -133,16 +159,74 @@ std::vector<std::shared_ptr<const RobotRecord>> Registry::all() const {
   return out;
 }
 
-std::map<std::string, GlobalPose> Registry::poses_locked() const {
+std::map<std::string, GlobalPose> Registry::composed_poses_locked() const {
   std::vector<Edge> usable;
   for (const auto& kv : edges_) usable.push_back(kv.second);
-  auto poses = global_poses(reference_, usable);
+  return global_poses(reference_, usable);
+}
+
+graph::GraphSolution Registry::solve_locked() const {
+  if (graph_.reference() != reference_ && !reference_.empty()) graph_.set_reference(reference_);
+  if (graph_stale_) {
+    std::set<std::string> current;
+    for (const auto& kv : edges_) {
+      const Edge& e = kv.second;
+      graph::Edge g;
+      g.source = e.source;
+      g.target = e.target;
+      g.T_target_source = Eigen::Isometry3d(e.T_target_source);
+      g.information = edge_information(e, graph::InformationConfig{});
+      try {
+        current.insert(graph_.add_or_update_edge(g));
+      } catch (const std::invalid_argument& ex) {
+        spdlog::warn("pose graph: edge {} <- {} left out: {}", e.target, e.source, ex.what());
+      }
+    }
+    std::vector<std::string> stale;
+    for (const auto& kv : graph_.edges()) {
+      if (current.count(kv.first) == 0) stale.push_back(kv.first);
+    }
+    for (const auto& id : stale) graph_.remove_edge(id);
+    graph_stale_ = false;
+  }
+  return graph_.optimise(graph_config_);
+}
+
+std::map<std::string, GlobalPose> Registry::poses_locked() const {
+  const auto composed = composed_poses_locked();
+  std::map<std::string, GlobalPose> poses;
+  const graph::GraphSolution solution = solve_locked();
+  if (!solution.valid) {
+    poses = composed;  // fallback: the spanning-tree composition
+  } else {
+    for (const graph::RobotSolution& r : solution.robots) {
+      if (!r.connected) continue;  // all its edges rejected, or none: POSE_UNKNOWN, not fused
+      GlobalPose p;
+      p.T_global_robot = r.T_global_robot.matrix();
+      p.quality = r.quality;
+      if (auto c = composed.find(r.id); c != composed.end()) {
+        p.fitness = c->second.fitness;
+        p.hops = c->second.hops;
+      }
+      poses[r.id] = p;
+    }
+  }
   for (auto it = poses.begin(); it != poses.end();) {
     auto rec = records_.find(it->first);
     const bool has_map = rec != records_.end() && rec->second->tree != nullptr;
     it = has_map ? std::next(it) : poses.erase(it);
   }
   return poses;
+}
+
+std::vector<Registry::RejectedEdge> Registry::rejected_edges() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  std::vector<RejectedEdge> out;
+  const graph::GraphSolution solution = solve_locked();
+  for (const graph::EdgeSolution& e : solution.edges) {
+    if (e.state == graph::EdgeState::kRejected) out.push_back({e.target, e.source, e.reason});
+  }
+  return out;
 }
 
 std::map<std::string, GlobalPose> Registry::poses() const {

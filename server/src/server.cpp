@@ -158,6 +158,16 @@ void Server::publish_status() {
                         rec->updates_accepted, rec->updates_rejected, rec->last_error});
   }
   s.recent_merges = pipeline_->recent_merges();
+  for (const auto& e : registry_.rejected_edges()) {  // left out of the fleet pose graph
+    MergeReportOut r;
+    r.target = e.target;
+    r.source = e.source;
+    r.accepted = false;
+    r.global_search = false;
+    r.detail = "rejected by the pose graph: " + e.reason;
+    r.stamp_unix = unix_now();
+    s.recent_merges.push_back(r);
+  }
   const auto c = pipeline_->counters();
   const auto sched = scheduler_->stats();
   s.updates_received = received_;

@@ -35,6 +35,70 @@ TEST(Registry, IgnoresDuplicatesAndOutOfOrderAndRestartsWithASession) {
   EXPECT_EQ(r.admit("r2", "a", 1), Admission::kNew);         // robots are independent
 }
 
+/// Registry of robots r1..r<n> (r1 the reference), each holding a map.
+void add_robots(Registry& r, int n) {
+  auto tree = std::make_shared<const octomap::OcTree>(0.1);
+  for (int i = 1; i <= n; ++i) {
+    RobotRecord rec;
+    rec.robot_id = "r" + std::to_string(i);
+    rec.session_id = "a";
+    rec.tree = tree;
+    r.put_map(rec);
+  }
+  r.claim_reference("r1");
+}
+
+Edge quality_edge(const std::string& target, const std::string& source, const Eigen::Matrix4d& T_target_source) {
+  Edge e{target, source, T_target_source, 0.05};
+  e.inliers = 2000;
+  e.overlap = 0.3;
+  return e;
+}
+
+TEST(Registry, PosesComeFromThePoseGraphWithQuality) {
+  Registry r;
+  add_robots(r, 3);
+  const Eigen::Matrix4d T12 = align::make_transform(2, 1, 0, 0, 0, 30);
+  const Eigen::Matrix4d T23 = align::make_transform(-1, 3, 0.2, 0, 0, -50);
+  r.put_edge(quality_edge("r1", "r2", T12));
+  r.put_edge(quality_edge("r2", "r3", T23));
+  const auto poses = r.poses();
+  ASSERT_EQ(poses.size(), 3u);
+  EXPECT_TRUE(poses.at("r3").T_global_robot.isApprox(T12 * T23, 1e-6));
+  EXPECT_EQ(poses.at("r3").hops, 2);
+  EXPECT_DOUBLE_EQ(poses.at("r1").quality, 1.0);
+  EXPECT_GT(poses.at("r2").quality, 0.0);
+  EXPECT_LT(poses.at("r3").quality, 1.0);
+  EXPECT_TRUE(r.rejected_edges().empty());
+}
+
+TEST(Registry, WrongEdgeIsRejectedByCycleConsistency) {
+  // Five robots with known frames, every pair aligned; one alignment is wrong by 25 degrees.
+  Registry r;
+  add_robots(r, 5);
+  std::vector<Eigen::Matrix4d> T_global(6, Eigen::Matrix4d::Identity());
+  for (int i = 2; i <= 5; ++i) T_global[i] = align::make_transform(4.0 * i, 1.0 - i, 0.1 * i, 0, 0, 35.0 * i);
+  for (int t = 1; t <= 5; ++t) {
+    for (int s = t + 1; s <= 5; ++s) {
+      Eigen::Matrix4d T_t_s = rigid_inverse(T_global[t]) * T_global[s];
+      if (t == 3 && s == 5) T_t_s = T_t_s * align::make_transform(0.5, 0, 0, 0, 0, 25);
+      r.put_edge(quality_edge("r" + std::to_string(t), "r" + std::to_string(s), T_t_s));
+    }
+  }
+  const auto poses = r.poses();
+  ASSERT_EQ(poses.size(), 5u);
+  for (int i = 2; i <= 5; ++i) {
+    const Eigen::Matrix4d& T = poses.at("r" + std::to_string(i)).T_global_robot;
+    EXPECT_LT((T.topRightCorner<3, 1>() - T_global[i].topRightCorner<3, 1>()).norm(), 0.01) << i;
+    EXPECT_LT((T.topLeftCorner<3, 3>() - T_global[i].topLeftCorner<3, 3>()).norm(), 1e-3) << i;
+  }
+  const auto rejected = r.rejected_edges();
+  ASSERT_EQ(rejected.size(), 1u);
+  EXPECT_EQ(rejected[0].target, "r3");
+  EXPECT_EQ(rejected[0].source, "r5");
+  EXPECT_FALSE(rejected[0].reason.empty());
+}
+
 TEST(Registry, NewSessionDropsTheRobotsAlignments) {
   Registry r;
   auto tree = std::make_shared<const octomap::OcTree>(0.1);

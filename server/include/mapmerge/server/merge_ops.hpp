@@ -14,6 +14,7 @@
 #include "mapmerge/align/align.hpp"
 #include "mapmerge/map/map_codec.hpp"
 #include "mapmerge/server/messages.hpp"
+#include "mapmerge/server/registry.hpp"
 
 namespace mapmerge::server {
 
@@ -38,6 +39,10 @@ align::AlignResult align_global(const align::PreparedMap& target, const align::P
 /// Local refinement from a known T_target_source.
 align::AlignResult align_local(const align::PreparedMap& target, const align::PreparedMap& source,
                                const Eigen::Matrix4d& T_target_source, const align::AlignConfig& config);
+
+/// The accepted alignment `T_target_source` of `source`'s map into `target`'s as a graph edge
+/// with its quality (inliers, fitness, overlap; pivot: centre of the maps' bounding-box overlap).
+Edge make_edge(const RobotRecord& target, const RobotRecord& source, const align::AlignResult& result);
 
 /// One robot's map with its pose in the global frame.
 struct PlacedMap {

@@ -2,6 +2,7 @@
 /// Global poses from accepted pairwise alignments: every robot connected to the reference gets
 /// T_global_robot by composing the transforms along the best path (edges weighted by fitness).
 
+#include <cstddef>
 #include <map>
 #include <string>
 #include <vector>
@@ -16,12 +17,16 @@ struct Edge {
   std::string source;
   Eigen::Matrix4d T_target_source = Eigen::Matrix4d::Identity();
   double fitness = 0.0;  ///< mean inlier distance [m]; lower is better
+  std::size_t inliers = 0;  ///< inlier pairs of the alignment [count]; 0: unknown (restored edge)
+  double overlap = 0.0;     ///< estimated share of points seen by both maps [0..1]
+  Eigen::Vector3d pivot_source = Eigen::Vector3d::Zero();  ///< centre of the overlap, source frame [m]
 };
 
 struct GlobalPose {
   Eigen::Matrix4d T_global_robot = Eigen::Matrix4d::Identity();
   double fitness = 0.0;  ///< worst fitness along the path [m]; 0 for the reference
   int hops = 0;          ///< edges between the robot and the reference
+  double quality = -1.0; ///< [0..1] from the optimised fleet graph; < 0: composed path (no graph solution)
 };
 
 /// Poses of every robot reachable from `reference` (which gets the identity). Path cost is the

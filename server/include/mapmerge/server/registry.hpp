@@ -14,6 +14,7 @@
 #include <octomap/OcTree.h>
 
 #include "mapmerge/align/align.hpp"
+#include "mapmerge/graph/pose_graph.hpp"
 #include "mapmerge/server/pose_graph.hpp"
 
 namespace mapmerge::server {
@@ -66,8 +67,15 @@ class Registry {
 
   std::shared_ptr<const RobotRecord> get(const std::string& robot) const;
   std::vector<std::shared_ptr<const RobotRecord>> all() const;
-  /// Global poses of the robots connected to the reference that hold a map.
+  /// Global poses of the robots connected to the reference that hold a map: the optimised fleet
+  /// pose graph (mapmerge::graph; cycle-inconsistent edges left out, a robot whose edges are all
+  /// rejected is not connected), or, when the graph has no valid solution, the composed path.
   std::map<std::string, GlobalPose> poses() const;
+  /// An alignment the pose graph rejected (inconsistent with the rest of the graph).
+  struct RejectedEdge {
+    std::string target, source, reason;
+  };
+  std::vector<RejectedEdge> rejected_edges() const;
   RobotStatus status(const std::string& robot) const;
 
  private:
@@ -77,12 +85,19 @@ class Registry {
   };
   RobotRecord& mutable_record(const std::string& robot);
   std::map<std::string, GlobalPose> poses_locked() const;
+  std::map<std::string, GlobalPose> composed_poses_locked() const;
+  graph::GraphSolution solve_locked() const;
 
   mutable std::mutex mutex_;
   std::map<std::string, Seen> seen_;
   std::map<std::string, std::shared_ptr<RobotRecord>> records_;
   std::map<std::pair<std::string, std::string>, Edge> edges_;
   std::string reference_;
+  // The fleet pose graph: one per registry (so per server), guarded by mutex_; rebuilt from
+  // edges_ when they changed, optimised incrementally (a cached solution when nothing changed).
+  mutable graph::PoseGraph graph_;
+  mutable bool graph_stale_ = true;
+  graph::GraphConfig graph_config_;
 };
 
 }  // namespace mapmerge::server
