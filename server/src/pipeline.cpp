@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <string_view>
 
 #include <spdlog/spdlog.h>
 
@@ -17,8 +18,16 @@ double seconds_since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
-/// How a global search remembers a failed partner (until the searching robot's map changes).
-std::string tried_key(const RobotRecord& other) { return other.robot_id; }
+/// How a global search remembers a failed partner: until the searching robot's map changes, or
+/// the partner's map does.
+std::string tried_key(const RobotRecord& other) {
+  return other.robot_id + "#" + std::to_string(other.map_revision);
+}
+
+std::size_t content_hash(const MapSample& m) {
+  return std::hash<std::string_view>{}(
+      std::string_view(reinterpret_cast<const char*>(m.data.data()), m.data.size()));
+}
 
 }  // namespace
 
@@ -26,6 +35,14 @@ Pipeline::Pipeline(const ServerConfig& config, Registry& registry, Store* store,
     : config_(config), registry_(registry), store_(store), hooks_(std::move(hooks)) {}
 
 void Pipeline::process(const std::string& robot, std::optional<MapSample> map, bool retry) {
+  if (map && registry_.touch_if_unchanged(robot, map->session_id, map->sequence, content_hash(*map),
+                                          map->received_unix)) {
+    // The same map again (a periodic republish): only partners whose maps changed since are
+    // worth a new global search; an aligned robot needs nothing.
+    spdlog::debug("robot {}: map {}/{} unchanged", robot, map->session_id, map->sequence);
+    if (registry_.status(robot) != RobotStatus::kAligned) place(robot);
+    return;
+  }
   if (map) {
     if (!ingest(*map, true)) return;
   } else if (!retry || registry_.status(robot) == RobotStatus::kAligned) {
@@ -53,6 +70,7 @@ bool Pipeline::ingest(const MapSample& m, bool persist) {
   r.resolution = decoded.tree->getResolution();
   r.received_unix = m.received_unix;
   r.tree = decoded.tree;
+  r.content_hash = content_hash(m);
   const std::size_t leaves = decoded.tree->getNumLeafNodes();
   warn_on_resolution(robot, r.resolution);
   registry_.put_map(std::move(r));

@@ -91,6 +91,20 @@ void Registry::put_map(RobotRecord record) {
   r = std::move(record);
 }
 
+bool Registry::touch_if_unchanged(const std::string& robot, const std::string& session, std::uint64_t sequence,
+                                  std::size_t content_hash, double received_unix) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  const auto it = records_.find(robot);
+  if (it == records_.end()) return false;
+  const RobotRecord& held = *it->second;
+  if (!held.tree || held.session_id != session || held.content_hash != content_hash) return false;
+  RobotRecord& r = mutable_record(robot);  // copy on write: readers keep their snapshot
+  r.sequence = sequence;
+  r.received_unix = received_unix;
+  ++r.updates_accepted;
+  return true;
+}
+
 void Registry::reject(const std::string& robot, const std::string& reason) {
   std::lock_guard<std::mutex> lock(mutex_);
   RobotRecord& r = mutable_record(robot);

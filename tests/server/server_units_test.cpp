@@ -35,6 +35,27 @@ TEST(Registry, IgnoresDuplicatesAndOutOfOrderAndRestartsWithASession) {
   EXPECT_EQ(r.admit("r2", "a", 1), Admission::kNew);         // robots are independent
 }
 
+TEST(Registry, AnUnchangedMapOfTheSameSessionIsOnlyTouched) {
+  Registry r;
+  RobotRecord rec;
+  rec.robot_id = "r1";
+  rec.session_id = "a";
+  rec.sequence = 1;
+  rec.tree = std::make_shared<const octomap::OcTree>(0.1);
+  rec.content_hash = 42;
+  r.put_map(rec);
+  const auto before = r.get("r1");
+  ASSERT_TRUE(before);
+  EXPECT_TRUE(r.touch_if_unchanged("r1", "a", 2, 42, 10.0));
+  const auto after = r.get("r1");
+  EXPECT_EQ(after->map_revision, before->map_revision);  // nothing to decode, prepare or search
+  EXPECT_EQ(after->sequence, 2u);
+  EXPECT_EQ(before->sequence, 1u);                        // readers keep their snapshot
+  EXPECT_FALSE(r.touch_if_unchanged("r1", "a", 3, 43, 11.0));  // other content: a real update
+  EXPECT_FALSE(r.touch_if_unchanged("r1", "b", 1, 42, 12.0));  // new session: frame may differ
+  EXPECT_FALSE(r.touch_if_unchanged("r2", "a", 1, 42, 13.0));  // unknown robot
+}
+
 /// Registry of robots r1..r<n> (r1 the reference), each holding a map.
 void add_robots(Registry& r, int n) {
   auto tree = std::make_shared<const octomap::OcTree>(0.1);

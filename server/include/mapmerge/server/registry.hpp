@@ -32,6 +32,7 @@ struct RobotRecord {
   std::shared_ptr<const octomap::OcTree> tree;             ///< null until a map was accepted
   std::shared_ptr<const align::PreparedMap> prepared;      ///< alignment features of `tree`
   std::uint64_t map_revision = 0;    ///< counts accepted maps of this robot (in memory)
+  std::size_t content_hash = 0;      ///< hash of the payload bytes of the map held
   std::set<std::string> tried;       ///< robots a global search of this revision already failed against
   std::uint64_t updates_accepted = 0;
   std::uint64_t updates_rejected = 0;
@@ -49,6 +50,11 @@ class Registry {
 
   /// Installs an accepted map (record fields other than counters and alignment are replaced).
   void put_map(RobotRecord record);
+  /// When the robot's map of the same session has exactly this content already, records the new
+  /// (sequence, arrival) without a new revision, so nothing is decoded, prepared or searched
+  /// again, and returns true. A robot republishing an unchanged map costs a hash.
+  bool touch_if_unchanged(const std::string& robot, const std::string& session, std::uint64_t sequence,
+                          std::size_t content_hash, double received_unix);
   /// Counts a rejected update of `robot` with its reason.
   void reject(const std::string& robot, const std::string& reason);
   void set_prepared(const std::string& robot, std::uint64_t revision,
