@@ -36,7 +36,13 @@ Scenario make_scenario(const octomap::OcTree& world, int n, double min_overlap, 
     const double end = start + length;
     r.box = along_x ? Eigen::AlignedBox3d(Eigen::Vector3d(start, y0, z0), Eigen::Vector3d(end, y1, z1))
                     : Eigen::AlignedBox3d(Eigen::Vector3d(x0, start, z0), Eigen::Vector3d(x1, end, z1));
-    r.T_robot_world = make_transform(offset(rng), offset(rng), lift(rng), tilt(rng), tilt(rng), yaw(rng));
+    const double x = offset(rng), y = offset(rng), z = lift(rng);
+    const double roll = tilt(rng), pitch = tilt(rng), heading = yaw(rng);
+    // The reference robot's frame (the global frame) is level and keeps the world's heading, so
+    // the global map stands upright and reads like the source map; the others are turned
+    // anywhere on the circle and tilted. Only frames relative to the reference matter.
+    const double turned = i == 0 ? 0.0 : 1.0;
+    r.T_robot_world = make_transform(x, y, z, turned * roll, turned * pitch, turned * heading);
     s.robots.push_back(r);
     start = end;
   }

@@ -28,7 +28,8 @@ struct Scenario {
 
 /// Cuts the world's extent along its longest horizontal axis into `n` overlapping strips, each
 /// overlapping its predecessor by a share drawn in [min_overlap, max_overlap], and gives each
-/// robot a random frame (yaw anywhere on the circle, roll/pitch within max_tilt_deg).
+/// robot a random frame (yaw anywhere on the circle, roll/pitch within max_tilt_deg); the first
+/// robot's frame, the reference, is only shifted (level, with the world's heading).
 Scenario make_scenario(const octomap::OcTree& world, int n, double min_overlap, double max_overlap,
                        double max_tilt_deg, double max_offset, std::mt19937& rng);
 
