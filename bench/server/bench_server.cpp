@@ -3,8 +3,10 @@
 // them (first alignment), then the latency of incremental updates of known robots (publish ->
 // updated global map received). Prints server CPU time and peak RSS per robot.
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <fstream>
+#include <map>
 #include <numeric>
 #include <random>
 #include <sstream>
@@ -28,6 +30,7 @@ struct Options {
   int updates = 6;
   int timeout_s = 900;
   double strip_share = 0.45;  ///< each robot sees this share of the map's length
+  double grow = 1.0;          ///< an incremental update grows a robot's map by this much [m]
 };
 
 struct Result {
@@ -35,22 +38,58 @@ struct Result {
   double first_global_s = 0, all_aligned_s = -1, map_kb_per_robot = 0;
   std::vector<double> incremental_ms;
   double cpu_s = 0, peak_rss_mb = 0, max_rot_deg = 0, max_trans_m = 0;
+  std::map<std::string, std::vector<double>> stages;  ///< server-side stage -> ms per incremental update
 };
+
+/// The server's own stage times of single-robot updates, from its log: decode and store of the
+/// map; fuse, encode, poses, store and publish of the global map it triggered.
+std::map<std::string, std::vector<double>> incremental_stages(const std::string& log_path) {
+  std::map<std::string, std::vector<double>> stages;
+  std::ifstream log(log_path);
+  for (std::string line; std::getline(log, line);) {
+    double a = 0, b = 0, c = 0, d = 0, e = 0;
+    const auto accepted = line.find("; decode ");
+    if (accepted != std::string::npos && std::sscanf(line.c_str() + accepted, "; decode %lf ms, store %lf ms", &a, &b) == 2) {
+      stages["map decode"].push_back(a);
+      stages["map store"].push_back(b);
+      continue;
+    }
+    if (line.find("(1 re-fused, 1 by difference)") == std::string::npos) continue;
+    const auto at = line.find("(fuse ");
+    if (at != std::string::npos &&
+        std::sscanf(line.c_str() + at, "(fuse %lf, encode %lf, poses %lf, store %lf, publish %lf)", &a, &b, &c, &d, &e) == 5) {
+      stages["global fuse"].push_back(a);
+      stages["global encode"].push_back(b);
+      stages["poses"].push_back(c);
+      stages["global store"].push_back(d);
+      stages["global publish"].push_back(e);
+    }
+  }
+  return stages;
+}
 
 double secs(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
 
-std::vector<mt::RobotMap> make_robots(const octomap::OcTree& world, int n, double share, std::mt19937& rng) {
+/// Robot i's map and the same map grown by `grow` m along x (its next update), same frame.
+struct BenchRobot {
+  mt::RobotMap map, grown;
+};
+
+std::vector<BenchRobot> make_robots(const octomap::OcTree& world, int n, double share, double grow, std::mt19937& rng) {
   double x0, y0, z0, x1, y1, z1;
   world.getMetricMin(x0, y0, z0);
   world.getMetricMax(x1, y1, z1);
   const double length = std::max((x1 - x0) * share, 2.0 * (x1 - x0) / (n + 1)), step = n > 1 ? ((x1 - x0) - length) / (n - 1) : 0.0;
   std::uniform_real_distribution<double> yaw(-180, 180), tilt(-3, 3), off(-5, 5);
-  std::vector<mt::RobotMap> robots;
+  std::vector<BenchRobot> robots;
   for (int i = 0; i < n; ++i) {
-    const Eigen::AlignedBox3d box(Eigen::Vector3d(x0 + i * step, y0, z0), Eigen::Vector3d(x0 + i * step + length, y1, z1));
+    auto box = [&](double extra) {
+      return Eigen::AlignedBox3d(Eigen::Vector3d(x0 + i * step, y0, z0), Eigen::Vector3d(x0 + i * step + length + extra, y1, z1));
+    };
     const Eigen::Matrix4d T = i == 0 ? Eigen::Matrix4d::Identity()
                                      : mapmerge::align::make_transform(off(rng), off(rng), 0, tilt(rng), tilt(rng), yaw(rng));
-    robots.push_back(mt::cut_robot_map(world, "r" + std::to_string(i + 1), box, T));
+    const std::string id = "r" + std::to_string(i + 1);
+    robots.push_back({mt::cut_robot_map(world, id, box(0), T), mt::cut_robot_map(world, id, box(grow), T)});
   }
   return robots;
 }
@@ -77,8 +116,10 @@ int aligned_count(const mt::FleetListener& op) {
   return n;
 }
 
-void first_alignment(const Options& o, Result& r, mt::FleetListener& op, const std::vector<mt::RobotMap>& robots,
+void first_alignment(const Options& o, Result& r, mt::FleetListener& op, const std::vector<BenchRobot>& fleet,
                      std::vector<std::unique_ptr<mt::RobotPublisher>>& pubs) {
+  std::vector<mt::RobotMap> robots;
+  for (const auto& b : fleet) robots.push_back(b.map);
   const auto t0 = Clock::now();
   for (std::size_t i = 0; i < robots.size(); ++i) pubs[i]->publish(*robots[i].tree, "s1", 1);
   op.wait_for([&] { return op.globals_received() > 0; }, std::chrono::seconds(o.timeout_s));
@@ -100,8 +141,12 @@ void first_alignment(const Options& o, Result& r, mt::FleetListener& op, const s
   }
 }
 
-void incremental(const Options& o, Result& r, mt::FleetListener& op, const std::vector<mt::RobotMap>& robots,
+/// Known robots in turn publish their next map (grown, then back to the original: a changed map
+/// each time, as a mapping robot sends); latency until the global map holds that sequence.
+void incremental(const Options& o, Result& r, mt::FleetListener& op, const std::vector<BenchRobot>& fleet,
                  std::vector<std::unique_ptr<mt::RobotPublisher>>& pubs) {
+  std::vector<mt::RobotMap> robots;
+  for (const auto& b : fleet) robots.push_back(b.map);
   const auto global = op.global();
   std::vector<std::size_t> known;
   for (std::size_t i = 0; i < robots.size(); ++i) {
@@ -111,8 +156,9 @@ void incremental(const Options& o, Result& r, mt::FleetListener& op, const std::
   for (int u = 0; u < o.updates; ++u) {
     const std::size_t i = known[static_cast<std::size_t>(u) % known.size()];
     const std::uint64_t seq = 2 + static_cast<std::uint64_t>(u);
+    const bool grown = (u / known.size()) % 2 == 0;
     const auto t0 = Clock::now();
-    pubs[i]->publish(*robots[i].tree, "s1", seq);
+    pubs[i]->publish(grown ? *fleet[i].grown.tree : *fleet[i].map.tree, "s1", seq);
     if (op.wait_for([&] { return op.global().contributor_sequence[robots[i].id] == seq; }, std::chrono::seconds(120))) {
       r.incremental_ms.push_back(secs(t0) * 1000.0);
     }
@@ -124,23 +170,24 @@ Result run(const Options& o, int n) {
   r.n = n;
   const auto world = mt::load_data_map(o.map);
   std::mt19937 rng(1234 + static_cast<unsigned>(n));
-  const auto robots = make_robots(*world, n, o.strip_share, rng);
+  const auto robots = make_robots(*world, n, o.strip_share, o.grow, rng);
   double bytes = 0;
-  for (const auto& rb : robots) bytes += static_cast<double>(mapmerge::encode_map(*rb.tree, mapmerge::Encoding::kOctomapBt).size());
+  for (const auto& rb : robots) bytes += static_cast<double>(mapmerge::encode_map(*rb.map.tree, mapmerge::Encoding::kOctomapBt).size());
   r.map_kb_per_robot = bytes / n / 1024.0;
   const std::string dir = mt::temp_dir("bench_" + std::to_string(n));
   std::ofstream(dir + "/bench.yaml") << "publish: {min_interval_s: 0.0}\nmerge: {threads: 2}\n";
-  mt::ServerProcess server({"--domain", std::to_string(o.domain), "--state-dir", dir + "/state", "--config",
+  mt::ServerProcess server({"--domain", std::to_string(o.domain), "--profile", "local", "--state-dir", dir + "/state", "--config",
                             dir + "/bench.yaml", "--reference", "r1", "--log-level", "info"},
                            dir + "/server.log");
   mt::FleetListener op(o.domain);
   std::vector<std::unique_ptr<mt::RobotPublisher>> pubs;
-  for (const auto& rb : robots) pubs.push_back(std::make_unique<mt::RobotPublisher>(o.domain, rb.id));
+  for (const auto& rb : robots) pubs.push_back(std::make_unique<mt::RobotPublisher>(o.domain, rb.map.id));
   std::this_thread::sleep_for(std::chrono::seconds(1));  // discovery settles
   first_alignment(o, r, op, robots, pubs);
   incremental(o, r, op, robots, pubs);
   std::tie(r.cpu_s, r.peak_rss_mb) = usage(server.pid());
   server.kill(SIGTERM);
+  r.stages = incremental_stages(dir + "/server.log");
   return r;
 }
 
@@ -148,9 +195,10 @@ void print(const Result& r) {
   auto v = r.incremental_ms;
   std::sort(v.begin(), v.end());
   const double med = v.empty() ? -1 : v[v.size() / 2], mx = v.empty() ? -1 : v.back();
-  std::printf("| %2d | %2d | %6.1f | %7.1f | %6.0f | %6.0f | %5.2f | %4.2f | %7.1f | %6.0f | %5.1f | %4.1f |\n", r.n,
-              r.aligned, r.first_global_s, r.all_aligned_s, med, mx, r.max_rot_deg, r.max_trans_m, r.cpu_s,
-              r.peak_rss_mb, r.peak_rss_mb / r.n, r.map_kb_per_robot / 1024.0);
+  const double p95 = v.empty() ? -1 : v[static_cast<std::size_t>(std::ceil(0.95 * static_cast<double>(v.size()))) - 1];
+  std::printf("| %2d | %2d | %6.1f | %7.1f | %3zu | %6.0f | %6.0f | %6.0f | %5.2f | %4.2f | %7.1f | %6.0f | %5.1f | %5.3f |\n",
+              r.n, r.aligned, r.first_global_s, r.all_aligned_s, v.size(), med, p95, mx, r.max_rot_deg, r.max_trans_m,
+              r.cpu_s, r.peak_rss_mb, r.peak_rss_mb / r.n, r.map_kb_per_robot / 1024.0);
   std::fflush(stdout);
 }
 
@@ -165,11 +213,26 @@ int main(int argc, char** argv) {
   app.add_option("--updates", o.updates, "incremental updates measured per fleet size");
   app.add_option("--timeout", o.timeout_s, "seconds to wait for the whole fleet to be merged");
   app.add_option("--strip-share", o.strip_share, "share of the map's length each robot sees");
+  app.add_option("--grow", o.grow, "an incremental update grows the robot's map by this much [m]");
   CLI11_PARSE(app, argc, argv);
-  std::printf("map %s; columns: robots | aligned | first global [s] | all merged [s] | incremental median/max [ms] | "
+  std::printf("map %s; columns: robots | aligned | first global [s] | all merged [s] | incremental updates measured, "
+              "median/p95/max [ms] | "
               "max rot err [deg] | max trans err [m] | server CPU [s] | peak RSS [MB] | RSS/robot [MB] | map/robot [MB]\n",
               o.map.c_str());
-  std::printf("|  N | al | first  | all     | incr50 | incrMx | rot   | tr   | cpu     | rss    | rss/r | map  |\n");
-  for (int n : o.robots) print(run(o, n));
+  std::printf("|  N | al | first  | all     | n   | incr50 | incr95 | incrMx | rot   | tr   | cpu     | rss    | rss/r | map   |\n");
+  std::vector<Result> results;
+  for (int n : o.robots) {
+    results.push_back(run(o, n));
+    print(results.back());
+  }
+  std::printf("\nserver stages of incremental updates, median ms (map decode/store: every accepted map)\n");
+  for (const Result& r : results) {
+    std::printf("N=%2d:", r.n);
+    for (auto [stage, v] : r.stages) {
+      std::sort(v.begin(), v.end());
+      std::printf(" %s %.1f;", stage.c_str(), v.empty() ? -1.0 : v[v.size() / 2]);
+    }
+    std::printf("\n");
+  }
   return 0;
 }

@@ -1,6 +1,8 @@
 #include "mapmerge/server/global_map.hpp"
 
 #include <algorithm>
+#include <chrono>
+#include <cmath>
 
 #include <spdlog/spdlog.h>
 
@@ -29,40 +31,67 @@ double global_resolution(const Registry& registry, const ServerConfig& config, c
 
 }  // namespace
 
-std::optional<GlobalMapOut> build_global_map(const Registry& registry, const ServerConfig& config,
-                                             std::uint64_t version) {
+std::vector<PlacedMap> GlobalMapBuilder::placed_maps(const Registry& registry,
+                                                     std::vector<Contribution>& contributors) {
   std::vector<PlacedMap> maps;
-  GlobalMapOut g;
   for (const auto& [robot, pose] : registry.poses()) {
     const auto rec = registry.get(robot);
     if (!rec || !rec->tree) continue;
-    maps.push_back(PlacedMap{robot, rec->tree, pose.T_global_robot});
-    g.contributors.push_back(Contribution{robot, rec->session_id, rec->sequence});
+    Eigen::Matrix4d T = pose.T_global_robot;
+    const auto fused = fusion_ ? fusion_->pose_of(robot) : std::nullopt;
+    if (fused && !moved_noticeably(*fused, T, config_.merge.refine_republish_translation,
+                                   config_.merge.refine_republish_rotation_deg)) {
+      T = *fused;
+    }
+    maps.push_back(PlacedMap{robot, rec->tree, T});
+    contributors.push_back(Contribution{robot, rec->session_id, rec->sequence});
   }
+  return maps;
+}
+
+std::optional<GlobalMapOut> GlobalMapBuilder::build(const Registry& registry, std::uint64_t version) {
+  const auto t0 = std::chrono::steady_clock::now();
+  GlobalMapOut g;
+  std::vector<PlacedMap> maps = placed_maps(registry, g.contributors);
   if (maps.empty()) return std::nullopt;
-  const double resolution = global_resolution(registry, config, maps);
-  const FusedGlobal fused = fuse_global(maps, resolution, config.limits.max_fusion_work);
-  for (const auto& [robot, reason] : fused.skipped) {
+  const double resolution = global_resolution(registry, config_, maps);
+  if (!(resolution > 0.0) || !std::isfinite(resolution)) return std::nullopt;
+  if (!fusion_ || fusion_->resolution() != resolution) {
+    FuseConfig fc;
+    fc.max_work = config_.limits.max_fusion_work;
+    fusion_ = std::make_unique<GlobalFusion>(resolution, fc);
+    refused_.clear();
+    g.contributors.clear();
+    maps = placed_maps(registry, g.contributors);  // no fused poses to keep in a new fusion
+  }
+  const GlobalSync sync = sync_global(*fusion_, maps, refused_);
+  for (const auto& [robot, reason] : sync.skipped) {
     spdlog::warn("robot {}: map left out of the global map: {}", robot, reason);
   }
-  if (!fused.tree) return std::nullopt;
+  if (sync.fused.empty()) return std::nullopt;
   g.contributors.erase(std::remove_if(g.contributors.begin(), g.contributors.end(),
                                       [&](const Contribution& c) {
-                                        return std::find(fused.fused.begin(), fused.fused.end(), c.robot_id) ==
-                                               fused.fused.end();
+                                        return std::find(sync.fused.begin(), sync.fused.end(), c.robot_id) ==
+                                               sync.fused.end();
                                       }),
                        g.contributors.end());
-  const auto& tree = fused.tree;
-  const Encoding encoding = parse_encoding(config.publish.global_encoding).value_or(Encoding::kOctomapBt);
+  const auto t1 = std::chrono::steady_clock::now();
+  const Encoding encoding = parse_encoding(config_.publish.global_encoding).value_or(Encoding::kOctomapBt);
+  GlobalFusion::Encoded e = fusion_->encode();
+  g.data = encoding == Encoding::kOctomapBt ? std::move(e.bt) : encode_map(*fusion_->tree(), encoding);
+  g.ros_body = std::move(e.body);
   g.version = version;
   g.stamp_unix = unix_now();
-  g.frame_id = config.merge.global_frame;
+  g.frame_id = config_.merge.global_frame;
   g.resolution = resolution;
   g.encoding = to_string(encoding);
-  g.data = encode_map(*tree, encoding);
-  g.ros_body = encode_tree_body(*tree, true);
+  const auto t2 = std::chrono::steady_clock::now();
+  stages_ = Stages{std::chrono::duration<double>(t1 - t0).count(), std::chrono::duration<double>(t2 - t1).count(),
+                   sync.updated, sync.incremental};
   return g;
 }
+
+Provenance GlobalMapBuilder::provenance() const { return fusion_ ? fusion_->provenance() : Provenance{}; }
 
 std::vector<PoseOut> pose_outputs(const Registry& registry) {
   const auto poses = registry.poses();

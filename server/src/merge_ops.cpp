@@ -1,5 +1,6 @@
 #include "mapmerge/server/merge_ops.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <exception>
 
@@ -83,29 +84,39 @@ Edge make_edge(const RobotRecord& target, const RobotRecord& source, const align
   return e;
 }
 
-FusedGlobal fuse_global(const std::vector<PlacedMap>& maps, double resolution, double max_work) {
-  FusedGlobal out;
-  if (!(resolution > 0.0) || !std::isfinite(resolution)) {
-    for (const PlacedMap& m : maps) out.skipped.emplace_back(m.robot, "global resolution is not positive");
-    return out;
+bool moved_noticeably(const Eigen::Matrix4d& before, const Eigen::Matrix4d& after, double translation,
+                      double rotation_deg) {
+  const Eigen::Matrix4d d = rigid_inverse(before) * after;
+  const double angle = std::acos(std::clamp((d.topLeftCorner<3, 3>().trace() - 1.0) / 2.0, -1.0, 1.0));
+  return d.topRightCorner<3, 1>().norm() > translation || angle * 180.0 / M_PI > rotation_deg;
+}
+
+GlobalSync sync_global(GlobalFusion& fusion, const std::vector<PlacedMap>& maps, RefusedMaps& refused) {
+  GlobalSync out;
+  for (const std::string& robot : fusion.robots()) {
+    const bool listed = std::any_of(maps.begin(), maps.end(), [&](const PlacedMap& m) { return m.robot == robot; });
+    if (!listed) fusion.remove(robot);
   }
-  auto tree = std::make_unique<octomap::OcTree>(resolution);
-  FuseConfig config;
-  config.prune = false;  // once, at the end
-  config.max_work = max_work;
   for (const PlacedMap& m : maps) {
-    try {
-      if (!m.tree) throw MapError("no map");
-      const FuseResult r = fuse_into(*tree, *m.tree, m.T_global_robot, config);  // !ok: tree untouched
-      if (!r.ok) throw MapError(r.reason);
+    if (fusion.holds(m.robot, m.tree.get(), m.T_global_robot)) {
       out.fused.push_back(m.robot);
+      continue;
+    }
+    const auto r = refused.find(m.robot);
+    if (r != refused.end() && r->second.first.lock() == m.tree && r->second.second == m.T_global_robot) continue;
+    try {
+      const GlobalFuseResult res = fusion.set(m.robot, m.tree, m.T_global_robot);  // !ok: robot left out
+      if (!res.ok) throw MapError(res.reason);
+      refused.erase(m.robot);
+      out.fused.push_back(m.robot);
+      ++out.updated;
+      out.incremental += res.incremental ? 1 : 0;
     } catch (const std::exception& e) {
+      fusion.remove(m.robot);
+      refused[m.robot] = {m.tree, m.T_global_robot};
       out.skipped.emplace_back(m.robot, e.what());
     }
   }
-  if (out.fused.empty()) return out;
-  tree->prune();
-  out.tree = std::move(tree);
   return out;
 }
 

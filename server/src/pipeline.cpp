@@ -55,7 +55,9 @@ bool Pipeline::restore(const MapSample& map) { return ingest(map, false); }
 
 bool Pipeline::ingest(const MapSample& m, bool persist) {
   const std::string& robot = m.topic_robot;
+  const auto t0 = std::chrono::steady_clock::now();
   DecodedMap decoded = decode_sample(m, config_.limits);
+  const double decode_s = seconds_since(t0);
   if (!decoded.tree) {
     ++rejected_;
     registry_.reject(robot, decoded.reason);
@@ -74,6 +76,7 @@ bool Pipeline::ingest(const MapSample& m, bool persist) {
   const std::size_t leaves = decoded.tree->getNumLeafNodes();
   warn_on_resolution(robot, r.resolution);
   registry_.put_map(std::move(r));
+  const auto t1 = std::chrono::steady_clock::now();
   if (persist && store_ != nullptr) {
     try {
       store_->save_map(m);
@@ -82,8 +85,8 @@ bool Pipeline::ingest(const MapSample& m, bool persist) {
     }
   }
   ++accepted_;
-  spdlog::info("robot {}: map {}/{} accepted ({} leaves, {:.3f} m)", robot, m.session_id, m.sequence, leaves,
-               decoded.tree->getResolution());
+  spdlog::info("robot {}: map {}/{} accepted ({} leaves, {:.3f} m; decode {:.0f} ms, store {:.0f} ms)", robot,
+               m.session_id, m.sequence, leaves, decoded.tree->getResolution(), decode_s * 1e3, seconds_since(t1) * 1e3);
   return true;
 }
 
@@ -179,10 +182,8 @@ bool Pipeline::refine_known(const RobotRecord& rec) {
 }
 
 bool Pipeline::moved_noticeably(const Eigen::Matrix4d& before, const Eigen::Matrix4d& after) const {
-  const Eigen::Matrix4d d = rigid_inverse(before) * after;
-  const double angle = std::acos(std::clamp((d.topLeftCorner<3, 3>().trace() - 1.0) / 2.0, -1.0, 1.0));
-  return d.topRightCorner<3, 1>().norm() > config_.merge.refine_republish_translation ||
-         angle * 180.0 / M_PI > config_.merge.refine_republish_rotation_deg;
+  return server::moved_noticeably(before, after, config_.merge.refine_republish_translation,
+                                  config_.merge.refine_republish_rotation_deg);
 }
 
 void Pipeline::on_new_alignment(const std::string& robot, bool joined) {

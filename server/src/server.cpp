@@ -115,8 +115,9 @@ void Server::loop_once() {
 
 void Server::publish_global() {
   const auto t0 = Clock::now();
-  auto global = build_global_map(registry_, config_, version_ + 1);
+  auto global = builder_.build(registry_, version_ + 1);
   if (!global) return;
+  const auto t_built = Clock::now();
   version_ = global->version;
   const auto poses = current_poses();
   if (store_) {
@@ -126,16 +127,22 @@ void Server::publish_global() {
       spdlog::error("global map {} kept in memory only, store failed: {}", version_, e.what());
     }
   }
+  const auto t_stored = Clock::now();
   last_global_ = std::move(global);
   republish();
+  const auto t_published = Clock::now();
   std::string unaligned;
   for (const PoseOut& p : poses) {
     if (p.state != PoseState::kAligned) unaligned += " " + p.robot_id;
   }
-  spdlog::info("global map {} published: {} robots, {} bytes, built in {:.3f} s; poses of {} robots{}{}", version_,
-               last_global_->contributors.size(), last_global_->data.size(),
-               std::chrono::duration<double>(Clock::now() - t0).count(), poses.size(),
-               unaligned.empty() ? "" : ", not aligned:", unaligned);
+  const auto st = builder_.last_stages();
+  auto ms = [](Clock::duration d) { return std::chrono::duration<double, std::milli>(d).count(); };
+  spdlog::info("global map {} published: {} robots ({} re-fused, {} by difference), {} bytes in {:.0f} ms "
+               "(fuse {:.0f}, encode {:.0f}, poses {:.0f}, store {:.0f}, publish {:.0f}); poses of {} robots{}{}",
+               version_, last_global_->contributors.size(), st.updated, st.incremental, last_global_->data.size(),
+               ms(t_published - t0), st.fuse_s * 1e3, st.encode_s * 1e3,
+               ms(t_built - t0) - (st.fuse_s + st.encode_s) * 1e3, ms(t_stored - t_built), ms(t_published - t_stored),
+               poses.size(), unaligned.empty() ? "" : ", not aligned:", unaligned);
 }
 
 void Server::republish() {

@@ -13,6 +13,7 @@
 #include "server_process.hpp"
 #include "mapmerge/align/map_cut.hpp"
 #include "mapmerge/server/config.hpp"
+#include "mapmerge/server/global_map.hpp"
 #include "mapmerge/server/merge_ops.hpp"
 #include "mapmerge/server/pose_graph.hpp"
 #include "mapmerge/server/registry.hpp"
@@ -275,35 +276,92 @@ std::shared_ptr<const octomap::OcTree> small_tree(double x) {
   return t;
 }
 
-TEST(FuseGlobal, OneBadMapIsSkippedAndTheOthersFused) {
+TEST(SyncGlobal, OneBadMapIsSkippedAndTheOthersFused) {
   Eigen::Matrix4d not_rigid = Eigen::Matrix4d::Identity();
-  not_rigid(0, 0) = 2.0;  // a scale: fuse_into refuses it
+  not_rigid(0, 0) = 2.0;  // a scale: core refuses it
   const std::vector<PlacedMap> maps{{"r1", small_tree(0.0), Eigen::Matrix4d::Identity()},
                                     {"r2", small_tree(1.0), not_rigid},
                                     {"r3", nullptr, Eigen::Matrix4d::Identity()},
                                     {"r4", small_tree(2.0), Eigen::Matrix4d::Identity()}};
-  const FusedGlobal g = fuse_global(maps, 0.1, 5e8);
-  ASSERT_TRUE(g.tree);
+  GlobalFusion fusion(0.1);
+  RefusedMaps refused;
+  const GlobalSync g = sync_global(fusion, maps, refused);
   EXPECT_EQ(g.fused, (std::vector<std::string>{"r1", "r4"}));
   ASSERT_EQ(g.skipped.size(), 2u);
   EXPECT_EQ(g.skipped[0].first, "r2");
   EXPECT_EQ(g.skipped[1].first, "r3");
   EXPECT_FALSE(g.skipped[0].second.empty());
-  const auto* r1 = g.tree->search(0.05, 0.05, 0.55);
-  const auto* r4 = g.tree->search(2.05, 0.05, 0.55);
+  const auto tree = fusion.tree();
+  const auto* r1 = tree->search(0.05, 0.05, 0.55);
+  const auto* r4 = tree->search(2.05, 0.05, 0.55);
   ASSERT_TRUE(r1 && r4);
-  EXPECT_TRUE(g.tree->isNodeOccupied(*r1) && g.tree->isNodeOccupied(*r4));
-  EXPECT_EQ(g.tree->search(1.05, 0.05, 0.55), nullptr);  // r2 left out
+  EXPECT_TRUE(tree->isNodeOccupied(*r1) && tree->isNodeOccupied(*r4));
+  EXPECT_EQ(tree->search(1.05, 0.05, 0.55), nullptr);  // r2 left out
+  // The same refused map is not tried again; a robot no longer listed is taken out.
+  const GlobalSync again = sync_global(fusion, {maps[0], maps[1]}, refused);
+  EXPECT_TRUE(again.skipped.empty());
+  EXPECT_EQ(again.fused, std::vector<std::string>{"r1"});
+  EXPECT_EQ(fusion.robots(), std::vector<std::string>{"r1"});
 }
 
-TEST(FuseGlobal, FusionWorkLimitAndBadResolutionLeaveNothingFused) {
-  const std::vector<PlacedMap> maps{{"r1", small_tree(0.0), Eigen::Matrix4d::Identity()}};
-  const FusedGlobal tiny = fuse_global(maps, 0.1, 1e-9);
-  EXPECT_FALSE(tiny.tree);
+TEST(SyncGlobal, FusionWorkLimitLeavesNothingFused) {
+  FuseConfig tight;
+  tight.max_work = 1e-9;
+  GlobalFusion fusion(0.1, tight);
+  RefusedMaps refused;
+  const GlobalSync tiny = sync_global(fusion, {{"r1", small_tree(0.0), Eigen::Matrix4d::Identity()}}, refused);
+  EXPECT_TRUE(tiny.fused.empty());
   ASSERT_EQ(tiny.skipped.size(), 1u);
-  const FusedGlobal bad = fuse_global(maps, 0.0, 5e8);
-  EXPECT_FALSE(bad.tree);
-  EXPECT_EQ(bad.skipped.size(), 1u);
+  EXPECT_TRUE(fusion.empty());
+}
+
+Eigen::AlignedBox3d box(double x0, double x1) {
+  return Eigen::AlignedBox3d(Eigen::Vector3d(x0, -8, -1), Eigen::Vector3d(x1, 8, 4));
+}
+
+RobotRecord record_of(const test::RobotMap& robot, std::uint64_t sequence) {
+  RobotRecord r;
+  r.robot_id = robot.id;
+  r.session_id = "s1";
+  r.sequence = sequence;
+  r.tree = robot.tree;
+  r.resolution = robot.tree->getResolution();
+  return r;
+}
+
+TEST(GlobalMapBuilder, AGrownMapIsFusedByItsDifferenceAndEqualsAFreshBuild) {
+  const auto world = test::load_data_map("geb079.bt");
+  const Eigen::Matrix4d T2 = align::make_transform(-4, 7, 0.3, -3, 2, 155);
+  const auto r1 = test::cut_robot_map(*world, "r1", box(-8, 12), Eigen::Matrix4d::Identity());
+  const auto r2 = test::cut_robot_map(*world, "r2", box(4, 24), T2);
+  const auto r2_grown = test::cut_robot_map(*world, "r2", box(4, 30), T2);
+  ServerConfig config;
+  Registry registry;
+  registry.claim_reference("r1");
+  registry.put_map(record_of(r1, 1));
+  registry.put_map(record_of(r2, 1));
+  registry.put_edge(Edge{"r1", "r2", T2.inverse(), 0.02});
+  GlobalMapBuilder builder(config);
+  const auto first = builder.build(registry, 1);
+  ASSERT_TRUE(first);
+  EXPECT_EQ(first->contributors.size(), 2u);
+  EXPECT_EQ(builder.last_stages().updated, 2u);
+
+  registry.put_map(record_of(r2_grown, 2));
+  const auto second = builder.build(registry, 2);
+  ASSERT_TRUE(second);
+  EXPECT_EQ(builder.last_stages().updated, 1u);
+  EXPECT_EQ(builder.last_stages().incremental, 1u);
+  EXPECT_GT(second->data.size(), first->data.size());
+  GlobalMapBuilder fresh(config);
+  const auto expected = fresh.build(registry, 2);
+  ASSERT_TRUE(expected);
+  EXPECT_TRUE(second->data == expected->data) << "incremental and fresh global maps differ";
+  EXPECT_TRUE(second->ros_body == expected->ros_body);
+  const Provenance p = builder.provenance();
+  ASSERT_EQ(p.robots.size(), 2u);
+  EXPECT_EQ(p.robots[1].name, "r2");
+  EXPECT_GT(p.owner.size(), 10000u);
 }
 
 TEST(ServerExitCodes, UsageAndStoreErrorsAreDistinct) {

@@ -3,18 +3,50 @@
 /// robot, and one pose per robot (aligned ones with T_global_robot, the others unknown).
 
 #include <cstdint>
+#include <memory>
 #include <optional>
 #include <vector>
 
+#include "mapmerge/map/global_fusion.hpp"
 #include "mapmerge/server/config.hpp"
+#include "mapmerge/server/merge_ops.hpp"
 #include "mapmerge/server/messages.hpp"
 #include "mapmerge/server/registry.hpp"
 
 namespace mapmerge::server {
 
-/// Fuses the aligned robots' maps (nothing when no robot is aligned).
-std::optional<GlobalMapOut> build_global_map(const Registry& registry, const ServerConfig& config,
-                                             std::uint64_t version);
+/// Keeps the global map of the aligned robots up to date (core's GlobalFusion): each build
+/// fuses only what changed since the last one. Used by one thread (the server's main loop).
+class GlobalMapBuilder {
+ public:
+  explicit GlobalMapBuilder(const ServerConfig& config) : config_(config) {}
+
+  /// The global map of every aligned robot (nothing when no robot is aligned). A robot whose pose
+  /// moved less than merge.refine_republish_translation / _rotation_deg since it was fused keeps
+  /// its fused pose (a pose-graph wobble does not re-fuse its whole map).
+  std::optional<GlobalMapOut> build(const Registry& registry, std::uint64_t version);
+
+  /// Which robot contributed each occupied voxel of the last built map, with every robot's frame.
+  /// O(occupied voxels of all robots): call it off the publishing path.
+  Provenance provenance() const;
+
+  /// Time the last build spent per stage [s].
+  struct Stages {
+    double fuse_s = 0.0;    ///< bringing the fusion up to date
+    double encode_s = 0.0;  ///< serialising the global map
+    std::size_t updated = 0, incremental = 0;  ///< robots re-fused, of which only the difference
+  };
+  Stages last_stages() const { return stages_; }
+  /// Bytes held by the global map's sums.
+  std::size_t memory_usage() const { return fusion_ ? fusion_->memory_usage() : 0; }
+
+ private:
+  std::vector<PlacedMap> placed_maps(const Registry& registry, std::vector<Contribution>& contributors);
+  const ServerConfig& config_;
+  std::unique_ptr<GlobalFusion> fusion_;
+  RefusedMaps refused_;
+  Stages stages_;
+};
 
 /// One pose per robot known to the registry.
 std::vector<PoseOut> pose_outputs(const Registry& registry);

@@ -3,6 +3,7 @@
 /// pairwise alignment (global or local) and fusion of the aligned maps. Each is one function,
 /// so the server follows core's API in one file.
 
+#include <map>
 #include <memory>
 #include <string>
 #include <utility>
@@ -12,6 +13,7 @@
 #include <octomap/OcTree.h>
 
 #include "mapmerge/align/align.hpp"
+#include "mapmerge/map/global_fusion.hpp"
 #include "mapmerge/map/map_codec.hpp"
 #include "mapmerge/server/messages.hpp"
 #include "mapmerge/server/registry.hpp"
@@ -51,16 +53,25 @@ struct PlacedMap {
   Eigen::Matrix4d T_global_robot = Eigen::Matrix4d::Identity();
 };
 
-/// The fused global tree and the robots left out of it.
-struct FusedGlobal {
-  std::unique_ptr<octomap::OcTree> tree;  ///< null when nothing could be fused
-  std::vector<std::string> fused;         ///< robots whose map is in `tree`, in input order
+/// Whether `after` is more than `translation` [m] or `rotation_deg` [deg] away from `before`.
+bool moved_noticeably(const Eigen::Matrix4d& before, const Eigen::Matrix4d& after, double translation,
+                      double rotation_deg);
+
+/// What one sync_global() did.
+struct GlobalSync {
+  std::vector<std::string> fused;    ///< robots whose map is in the global map, in input order
   std::vector<std::pair<std::string, std::string>> skipped;  ///< (robot, reason) left out
+  std::size_t updated = 0;           ///< robots (re)fused by this sync
+  std::size_t incremental = 0;       ///< ... of which only the difference (same pose, grown map)
 };
 
-/// Fuses the maps into a new global tree of `resolution` [m] (log-odds addition, resampled).
-/// A map that core refuses (non-rigid pose, fusion work above `max_work`, MapError or any other
-/// exception) is skipped with its reason; the others are fused regardless.
-FusedGlobal fuse_global(const std::vector<PlacedMap>& maps, double resolution, double max_work);
+/// Robot -> the map and pose a fusion refused: not tried again until either changes.
+using RefusedMaps = std::map<std::string, std::pair<std::weak_ptr<const octomap::OcTree>, Eigen::Matrix4d>>;
+
+/// Brings `fusion` to exactly `maps`: robots not listed are taken out, a robot whose map or pose
+/// changed is updated (only the difference of its map when the pose is the same). A map that core
+/// refuses (non-rigid pose, fusion work above the fusion's max_work, any exception) is left out
+/// with its reason (and remembered in `refused`); the others are fused regardless.
+GlobalSync sync_global(GlobalFusion& fusion, const std::vector<PlacedMap>& maps, RefusedMaps& refused);
 
 }  // namespace mapmerge::server

@@ -13,6 +13,7 @@
 
 #include "mapmerge/server/config.hpp"
 #include "mapmerge/server/dds_io.hpp"
+#include "mapmerge/server/global_map.hpp"
 #include "mapmerge/server/pipeline.hpp"
 #include "mapmerge/server/registry.hpp"
 #include "mapmerge/server/scheduler.hpp"
@@ -46,6 +47,7 @@ class Server {
 
   ServerConfig config_;
   Registry registry_;
+  GlobalMapBuilder builder_{config_};
   std::unique_ptr<Store> store_;
   std::unique_ptr<Pipeline> pipeline_;
   std::unique_ptr<Scheduler> scheduler_;

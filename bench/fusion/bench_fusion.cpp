@@ -1,0 +1,119 @@
+// Global fusion of N robots' maps cut from one real map (strips along x, each in its own turned
+// frame, as bench/server cuts them): the full re-fusion the server used to run on every change
+// against GlobalFusion's incremental update of one robot (its map grown, same pose), a pose
+// change, and the outputs (encode, provenance). CPU time of this thread, so the numbers hold on
+// a loaded machine. Memory: the global sums and a robot's decoded map against its payload.
+#include <algorithm>
+#include <cstdio>
+#include <ctime>
+#include <random>
+
+#include <CLI/CLI.hpp>
+#include <Eigen/Geometry>
+
+#include "mapmerge/map/crop.hpp"
+#include "mapmerge/map/fusion.hpp"
+#include "mapmerge/map/global_fusion.hpp"
+#include "mapmerge/map/map_codec.hpp"
+#include "mapmerge/map/map_io.hpp"
+
+using namespace mapmerge;
+
+namespace {
+
+double cpu_ms() {
+  timespec t{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
+  return static_cast<double>(t.tv_sec) * 1e3 + static_cast<double>(t.tv_nsec) / 1e6;
+}
+
+struct Robot {
+  std::shared_ptr<const octomap::OcTree> map, grown;
+  Eigen::Matrix4d T_global_robot;
+  std::size_t payload_bytes = 0;
+};
+
+/// N strips of `share` of the map's length; robot i's grown map reaches `grow` m further.
+std::vector<Robot> make_fleet(const octomap::OcTree& world, int n, double share, double grow) {
+  double x0, y0, z0, x1, y1, z1;
+  world.getMetricMin(x0, y0, z0);
+  world.getMetricMax(x1, y1, z1);
+  const double length = std::max((x1 - x0) * share, 2.0 * (x1 - x0) / (n + 1));
+  const double step = n > 1 ? ((x1 - x0) - length) / (n - 1) : 0.0;
+  std::mt19937 rng(1234 + static_cast<unsigned>(n));
+  std::uniform_real_distribution<double> yaw(-M_PI, M_PI), off(-5, 5);
+  std::vector<Robot> fleet;
+  for (int i = 0; i < n; ++i) {
+    const Eigen::Isometry3d T = i == 0 ? Eigen::Isometry3d::Identity() : make_transform(off(rng), off(rng), 0, 0, 0, yaw(rng));
+    auto box = [&](double extra) {
+      return Eigen::AlignedBox3d(Eigen::Vector3d(x0 + i * step, y0, z0), Eigen::Vector3d(x0 + i * step + length + extra, y1, z1));
+    };
+    Robot r;
+    r.map = crop_and_transform(world, box(0), T);
+    r.grown = crop_and_transform(world, box(grow), T);
+    r.T_global_robot = T.inverse().matrix();
+    r.payload_bytes = encode_map(*r.map, Encoding::kOctomapBt).size();
+    fleet.push_back(std::move(r));
+  }
+  return fleet;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"global fusion bench: full re-fusion vs incremental update (CPU time)"};
+  std::string map = "fr_079.bt";
+  std::vector<int> sizes{2, 4, 8, 16};
+  double share = 0.45, grow = 1.0;
+  app.add_option("--map", map, "map in data/");
+  app.add_option("--robots", sizes, "fleet sizes")->delimiter(',');
+  app.add_option("--strip-share", share, "share of the map's length each robot sees");
+  app.add_option("--grow", grow, "how far a robot's map grows in one update [m]");
+  CLI11_PARSE(app, argc, argv);
+  const auto world = read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/" + map);
+  const double res = world->getResolution();
+  std::printf("map %s, a robot's map grows by %.1f m per update; CPU ms\n", map.c_str(), grow);
+  std::printf("| N | full re-fusion + prune + encode | GlobalFusion all | update (diff) | pose change | encode | provenance | decode robot | sums MB | robot tree MB | robot payload MB |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|---|\n");
+  for (const int n : sizes) {
+    const auto fleet = make_fleet(*world, n, share, grow);
+    std::vector<MapInGlobal> placed;
+    for (const auto& r : fleet) placed.emplace_back(r.map.get(), r.T_global_robot);
+    double t = cpu_ms();
+    auto full = fuse_maps(placed, res);
+    const auto full_bytes = encode_map(*full, Encoding::kOctomapBt);
+    const double t_full = cpu_ms() - t;
+    full.reset();
+
+    GlobalFusion g(res);
+    t = cpu_ms();
+    for (std::size_t i = 0; i < fleet.size(); ++i) g.set("r" + std::to_string(i), fleet[i].map, fleet[i].T_global_robot);
+    g.encode();
+    const double t_all = cpu_ms() - t;
+    const std::size_t k = fleet.size() / 2;  // a robot in the middle of the fleet
+    t = cpu_ms();
+    const GlobalFuseResult up = g.set("r" + std::to_string(k), fleet[k].grown, fleet[k].T_global_robot);
+    const double t_update = cpu_ms() - t;
+    Eigen::Matrix4d moved = fleet[k].T_global_robot;
+    moved(0, 3) += 0.02;
+    t = cpu_ms();
+    g.set("r" + std::to_string(k), fleet[k].grown, moved);
+    const double t_pose = cpu_ms() - t;
+    t = cpu_ms();
+    const auto encoded = g.encode();
+    const double t_encode = cpu_ms() - t;
+    t = cpu_ms();
+    const Provenance p = g.provenance();
+    const double t_prov = cpu_ms() - t;
+    const auto payload = encode_map(*fleet[k].grown, Encoding::kOctomapBt);
+    t = cpu_ms();
+    const DecodeResult d = decode_map(payload, Encoding::kOctomapBt, DecodeLimits{});
+    const double t_decode = cpu_ms() - t;
+    std::printf("| %d | %.0f | %.0f | %.1f (%s, %zu cubes) | %.0f | %.1f (%zu kB) | %.0f (%zu voxels) | %.1f | %.1f | %.2f | %.3f |\n", n,
+                t_full, t_all, t_update, up.incremental ? "diff" : "full", up.cubes, t_pose, t_encode, encoded.bt.size() / 1024,
+                t_prov, p.owner.size(), t_decode, g.memory_usage() / 1e6, d.tree ? d.tree->memoryUsage() / 1e6 : 0.0,
+                payload.size() / 1e6);
+    std::fflush(stdout);
+  }
+  return 0;
+}

@@ -1,0 +1,106 @@
+#pragma once
+/// Incremental fusion of a fleet's maps into one global map.
+///
+/// Every robot's evidence is resampled onto the global grid exactly as fuse_into() places it,
+/// but kept as an exact per-voxel sum (log-odds quantised to 1/4096, a 64-bit fixed-point sum
+/// plus the number of robots that contributed): clamping happens only when the map is read out.
+/// So a robot's contribution can be taken out again exactly, and changing one robot touches only
+/// what changed: a grown map of the same pose adds the difference of its leaves, a new pose
+/// or resolution takes the old contribution out and puts the new one in. The result does not
+/// depend on the order in which robots were added, updated or removed.
+///
+/// Semantics (differs from fuse_maps(), which clamps after each map): a voxel's log-odds is
+/// clamp(sum of all robots' evidence), unknown when no robot has evidence for it.
+
+#include <cstddef>
+#include <cstdint>
+#include <map>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+#include <octomap/OcTree.h>
+
+#include "mapmerge/map/fusion.hpp"
+#include "mapmerge/map/provenance.hpp"
+
+namespace mapmerge {
+
+namespace detail {
+class SumTree;
+}
+
+/// What GlobalFusion::set() did.
+struct GlobalFuseResult {
+  bool ok = false;
+  std::string reason;          ///< why the map was refused (it is then out of the global map)
+  bool incremental = false;    ///< only the changed leaves were fused (same pose, same resolution)
+  std::size_t cubes = 0;       ///< source leaves (or changed leaf regions) placed on the grid
+  std::size_t voxel_updates = 0;
+  std::size_t block_updates = 0;
+};
+
+/// The fleet's global map, kept up to date one robot at a time. Not thread-safe: one owner.
+class GlobalFusion {
+ public:
+  /// `resolution` [m] of the global grid; `config`: fuse_free, rigid_tolerance and max_work
+  /// (per robot map) as in fuse_into(); `prune` is ignored (the output is always canonical).
+  explicit GlobalFusion(double resolution, const FuseConfig& config = FuseConfig{});
+  ~GlobalFusion();
+  GlobalFusion(const GlobalFusion&) = delete;
+  GlobalFusion& operator=(const GlobalFusion&) = delete;
+
+  /// Puts `robot`'s map at `T_global_robot` into the global map, replacing what it contributed
+  /// before. The map is held (shared, never modified) to compute the next update's difference.
+  /// A refused map (not rigid, too much work, null) takes the robot out of the global map.
+  GlobalFuseResult set(const std::string& robot, std::shared_ptr<const octomap::OcTree> map,
+                       const Eigen::Matrix4d& T_global_robot);
+  /// Takes `robot`'s contribution out (no-op for a robot not fused).
+  void remove(const std::string& robot);
+
+  /// Whether `robot` is fused with exactly this map and pose (nothing to do for set()).
+  bool holds(const std::string& robot, const octomap::OcTree* map, const Eigen::Matrix4d& T) const;
+  /// The pose `robot` is fused with (nullopt for a robot not fused).
+  std::optional<Eigen::Matrix4d> pose_of(const std::string& robot) const;
+  /// Robots in the global map, sorted.
+  std::vector<std::string> robots() const;
+  double resolution() const { return resolution_; }
+  bool empty() const;
+
+  /// The global map as a `.bt` payload (OcTree::writeBinary's bytes: maximum-likelihood
+  /// occupancy, pruned) and as the bare binary body of octomap_msgs/Octomap. One pass over the
+  /// global map, which also prunes the internal sums (merges equal blocks, drops empty space).
+  struct Encoded {
+    std::vector<std::uint8_t> bt;    ///< header + body
+    std::vector<std::uint8_t> body;  ///< body only (octomap_msgs binary)
+    std::size_t nodes = 0;           ///< nodes of the encoded tree
+  };
+  Encoded encode();
+
+  /// The global map as an OcTree with the clamped log-odds (pruned). O(global map).
+  std::unique_ptr<octomap::OcTree> tree() const;
+
+  /// The robot with the strongest occupied evidence per voxel, and each robot's frame (named by
+  /// robot id). O(occupied leaves of all robots).
+  Provenance provenance() const;
+
+  /// Bytes held by the global sums (not counting the robots' maps, which are shared).
+  std::size_t memory_usage() const;
+
+ private:
+  struct Entry {
+    std::shared_ptr<const octomap::OcTree> map;
+    Eigen::Matrix4d T_global_robot;
+  };
+  void add_full(const Entry& entry, int sign, GlobalFuseResult& stats);
+  bool add_difference(const Entry& before, const Entry& after, GlobalFuseResult& stats);
+
+  double resolution_;
+  FuseConfig config_;
+  std::unique_ptr<detail::SumTree> sums_;
+  std::map<std::string, Entry> robots_;
+};
+
+}  // namespace mapmerge

@@ -1,0 +1,174 @@
+// GlobalFusion's outputs: the `.bt` payload (one pass that also prunes the sums), an OcTree of
+// clamped log-odds, and provenance.
+#include <algorithm>
+#include <sstream>
+
+#include "leaf_mapper.hpp"
+#include "mapmerge/map/global_fusion.hpp"
+#include "sum_tree.hpp"
+#include "tree_writer.hpp"
+
+namespace mapmerge {
+namespace {
+
+/// What a subtree of the global map is once clamped: one state throughout, or mixed.
+enum class State : std::uint8_t { kUnknown = 0, kFree = 1, kOccupied = 2, kMixed = 3 };
+
+State leaf_state(std::int64_t packed) {
+  if (packed == 0) return State::kUnknown;
+  return detail::unpack_sum(packed) >= 0.0 ? State::kOccupied : State::kFree;
+}
+
+/// Writes OcTree::writeBinaryData's body of the maximum-likelihood, pruned global map: per inner
+/// node 2 bytes of 2-bit child codes (00 unknown, 01 free, 10 occupied, 11 inner), pre-order.
+/// A node's record is reserved before its children are written and dropped again when they all
+/// turn out to share one state (the node is then a leaf of its parent). Empty subtrees of the
+/// sums are deleted and equal blocks merged on the way.
+class BodyWriter {
+ public:
+  BodyWriter(detail::SumTree& sums, std::vector<std::uint8_t>& out) : sums_(sums), out_(out) {}
+
+  std::size_t run() {
+    sums_.forget_path();
+    detail::SumNode* root = sums_.root_node();
+    if (root == nullptr) return 0;
+    const State s = write(root);
+    if (s == State::kUnknown) {
+      sums_.drop_all();
+      return 0;
+    }
+    if (s != State::kMixed) {  // the whole key space in one state: a root with 8 leaves
+      const std::uint8_t b = s == State::kFree ? 0x55 : 0xAA;
+      out_.push_back(b);
+      out_.push_back(b);
+      return 9;
+    }
+    return nodes_ + 1;
+  }
+
+ private:
+  State write(detail::SumNode* node) {
+    if (!sums_.nodeHasChildren(node)) return leaf_state(node->getValue());
+    const std::size_t at = out_.size();
+    out_.resize(at + 2, 0);
+    State states[8];
+    for (unsigned i = 0; i < 8; ++i) {
+      states[i] = State::kUnknown;
+      if (!sums_.nodeChildExists(node, i)) continue;
+      states[i] = write(sums_.getNodeChild(node, i));  // depth <= 16: bounded recursion
+      if (states[i] == State::kUnknown) sums_.drop_child(node, i);
+    }
+    sums_.pruneNode(node);  // merges 8 equal leaves; no-op otherwise
+    if (states[0] != State::kMixed && std::all_of(states, states + 8, [&](State s) { return s == states[0]; })) {
+      out_.resize(at);  // uniform: the parent records it as a leaf
+      return states[0];
+    }
+    for (unsigned i = 0; i < 8; ++i) {
+      const auto code = static_cast<unsigned>(states[i]);
+      const unsigned bits = code == 1 ? 1U : code == 2 ? 2U : code;  // free 01, occupied 10
+      out_[at + i / 4] = static_cast<std::uint8_t>(out_[at + i / 4] | (bits << (2 * (i % 4))));
+      nodes_ += states[i] != State::kUnknown;
+    }
+    return State::kMixed;
+  }
+
+  detail::SumTree& sums_;
+  std::vector<std::uint8_t>& out_;
+  std::size_t nodes_ = 0;
+};
+
+std::string bt_header(std::size_t nodes, double resolution) {
+  std::ostringstream header;  // default stream formatting, as OctoMap's writer
+  header << "# Octomap OcTree binary file\n"
+            "# (feel free to add / change comments, but leave the first line as it is!)\n#\n"
+         << "id OcTree\n"
+         << "size " << nodes << "\n"
+         << "res " << resolution << "\n"
+         << "data\n";
+  return header.str();
+}
+
+/// Copies the sums' leaves, clamped, into an OcTree.
+void copy_leaves(const detail::SumTree& sums, const detail::SumNode* node, const octomap::OcTreeKey& key,
+                 unsigned depth, detail::TreeWriter& writer) {
+  if (!sums.nodeHasChildren(node)) {
+    if (node->getValue() != 0) {
+      writer.add(key, 16 - depth, static_cast<float>(detail::unpack_sum(node->getValue())));
+    }
+    return;
+  }
+  const auto offset = static_cast<octomap::key_type>(32768 >> (depth + 1));
+  for (unsigned i = 0; i < 8; ++i) {
+    if (!sums.nodeChildExists(node, i)) continue;
+    octomap::OcTreeKey k;
+    octomap::computeChildKey(i, offset, key, k);
+    copy_leaves(sums, sums.getNodeChild(node, i), k, depth + 1, writer);
+  }
+}
+
+/// Provenance's sink: occupied evidence voted for, voxel by voxel.
+struct VoteSink {
+  Provenance& provenance;
+  std::uint16_t robot;
+  void apply(const octomap::OcTreeKey& key, unsigned level, float delta) {
+    const int n = 1 << level;
+    for (int i = 0; i < n * n * n; ++i) {
+      provenance.vote(octomap::OcTreeKey(static_cast<octomap::key_type>(key[0] + i % n),
+                                         static_cast<octomap::key_type>(key[1] + (i / n) % n),
+                                         static_cast<octomap::key_type>(key[2] + i / (n * n))),
+                      robot, delta);
+    }
+  }
+};
+
+}  // namespace
+
+GlobalFusion::Encoded GlobalFusion::encode() {
+  Encoded e;
+  e.nodes = BodyWriter(*sums_, e.body).run();
+  const std::string header = bt_header(e.nodes, resolution_);
+  e.bt.reserve(header.size() + e.body.size());
+  e.bt.assign(header.begin(), header.end());
+  e.bt.insert(e.bt.end(), e.body.begin(), e.body.end());
+  return e;
+}
+
+std::unique_ptr<octomap::OcTree> GlobalFusion::tree() const {
+  auto tree = std::make_unique<octomap::OcTree>(resolution_);
+  if (const detail::SumNode* root = sums_->root_node()) {
+    detail::TreeWriter writer(*tree);
+    copy_leaves(*sums_, root, octomap::OcTreeKey(32768, 32768, 32768), 0, writer);
+  }
+  tree->updateInnerOccupancy();
+  tree->prune();
+  return tree;
+}
+
+Provenance GlobalFusion::provenance() const {
+  Provenance p;
+  p.resolution = resolution_;
+  for (const auto& [robot, entry] : robots_) {
+    const auto index = static_cast<std::uint16_t>(p.robots.size());
+    p.robots.push_back(RobotFrame{robot, entry.T_global_robot});
+    VoteSink sink{p, index};
+    FuseResult counts;
+    detail::LeafMapper<VoteSink, float> mapper(entry.T_global_robot, resolution_, sink, counts);
+    const octomap::OcTree& map = *entry.map;
+    for (auto it = map.begin_leafs(), end = map.end_leafs(); it != end; ++it) {
+      const float v = it->getLogOdds();
+      if (v <= 0.0F) continue;
+      const Eigen::Vector3d c(it.getX(), it.getY(), it.getZ());
+      if (it.getSize() >= resolution_ * (1 - 1e-9)) {
+        mapper.add_cube(c, it.getSize(), v);
+        continue;
+      }
+      const Eigen::Vector3d ct = entry.T_global_robot.topLeftCorner<3, 3>() * c +
+                                 entry.T_global_robot.topRightCorner<3, 1>();
+      octomap::OcTreeKey key;
+      if (sums_->coordToKeyChecked(ct.x(), ct.y(), ct.z(), key)) p.vote(key, index, v);
+    }
+  }
+  return p;
+}
+
+}  // namespace mapmerge

@@ -1,0 +1,90 @@
+#include "sum_tree.hpp"
+
+#include <algorithm>
+
+namespace mapmerge::detail {
+namespace {
+constexpr unsigned kTreeDepth = 16;
+}  // namespace
+
+SumNode* SumTree::new_child(SumNode* node, unsigned i, std::int64_t value) {
+  SumNode* child = createNodeChild(node, i);  // a SumNode() holds 0
+  child->setValue(value);
+  return child;
+}
+
+SumNode* SumTree::descend(const octomap::OcTreeKey& key, unsigned depth, bool& fresh) {
+  fresh = false;
+  if (root == nullptr) {
+    root = new SumNode(0);
+    ++tree_size;
+    size_changed = true;
+    path_depth_ = 0;
+    fresh = true;
+  }
+  path_[0] = root;
+  // The cached path is shared down to the level of the highest bit where the keys differ.
+  const unsigned diff = static_cast<unsigned>((key[0] ^ path_key_[0]) | (key[1] ^ path_key_[1]) |
+                                              (key[2] ^ path_key_[2]));
+  unsigned shared = kTreeDepth;
+  for (unsigned bits = diff; bits != 0; bits >>= 1) --shared;
+  const unsigned d = std::min({shared, depth, path_depth_});
+  SumNode* node = path_[d];
+  for (unsigned level = d; level < depth; ++level) {
+    const unsigned pos = octomap::computeChildIdx(key, static_cast<int>(kTreeDepth - 1 - level));
+    if (nodeChildExists(node, pos)) {
+      node = getNodeChild(node, pos);
+    } else if (!fresh && !nodeHasChildren(node) && node->getValue() != 0) {
+      expandNode(node);  // a uniform block: its children inherit its sum
+      node = getNodeChild(node, pos);
+    } else {
+      node = new_child(node, pos, 0);  // no evidence yet
+      fresh = true;
+    }
+    path_[level + 1] = node;
+  }
+  path_key_ = key;
+  path_depth_ = depth;
+  return node;
+}
+
+void SumTree::add_subtree(SumNode* node, std::int64_t delta) {
+  if (!nodeHasChildren(node)) {
+    node->setValue(node->getValue() + delta);
+    return;
+  }
+  for (unsigned i = 0; i < 8; ++i) {
+    if (nodeChildExists(node, i)) {
+      add_subtree(getNodeChild(node, i), delta);  // depth <= 16: bounded recursion
+    } else {
+      new_child(node, i, delta);
+    }
+  }
+}
+
+void SumTree::add(const octomap::OcTreeKey& key, unsigned level, std::int64_t delta) {
+  bool fresh = false;
+  SumNode* node = descend(key, kTreeDepth - level, fresh);
+  if (fresh) {
+    node->setValue(delta);
+  } else {
+    add_subtree(node, delta);
+  }
+}
+
+void SumTree::drop_child(SumNode* parent, unsigned i) {
+  SumNode* child = getNodeChild(parent, i);
+  for (unsigned k = 0; k < 8; ++k) {
+    if (nodeChildExists(child, k)) drop_child(child, k);  // depth <= 16: bounded recursion
+  }
+  child->free_children_array();
+  deleteNodeChild(parent, i);
+  path_depth_ = 0;
+}
+
+void SumTree::drop_all() {
+  clear();
+  path_depth_ = 0;
+}
+
+}  // namespace mapmerge::detail

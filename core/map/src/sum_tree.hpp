@@ -1,0 +1,70 @@
+#pragma once
+/// The exact evidence sums behind GlobalFusion (internal to mapmerge_core).
+///
+/// Each voxel holds one int64: (sum of quantised log-odds) * 2^16 + (number of contributions).
+/// Both parts add linearly, so adding a contribution and subtracting it again is exact; 0 means
+/// no robot has evidence for the voxel (unknown). A leaf above full depth is a uniform block.
+
+#include <array>
+#include <cmath>
+#include <cstdint>
+#include <vector>
+
+#include <octomap/OcTreeBase.h>
+#include <octomap/OcTreeDataNode.h>
+
+namespace mapmerge::detail {
+
+/// A voxel's packed sum (0 when created: no evidence).
+class SumNode : public octomap::OcTreeDataNode<std::int64_t> {
+ public:
+  SumNode() : octomap::OcTreeDataNode<std::int64_t>(0) {}
+  explicit SumNode(std::int64_t value) : octomap::OcTreeDataNode<std::int64_t>(value) {}
+  /// Frees the (emptied) child pointer array before the node is deleted.
+  void free_children_array() {
+    delete[] children;
+    children = nullptr;
+  }
+};
+
+constexpr double kLogOddsQuantum = 4096.0;  ///< log-odds steps per unit (1/4096 resolution)
+constexpr int kCountBits = 16;              ///< low bits of a packed sum: contributions
+
+/// The packed contribution of one robot's evidence `log_odds` (0: none).
+inline std::int64_t pack_evidence(float log_odds) {
+  const auto q = static_cast<std::int64_t>(std::llround(static_cast<double>(log_odds) * kLogOddsQuantum));
+  return q == 0 ? 0 : q * (std::int64_t{1} << kCountBits) + 1;
+}
+
+/// The summed log-odds of a packed value (not clamped).
+inline double unpack_sum(std::int64_t packed) {
+  const std::int64_t count = packed & ((std::int64_t{1} << kCountBits) - 1);
+  return static_cast<double>((packed - count) / (std::int64_t{1} << kCountBits)) / kLogOddsQuantum;
+}
+
+class SumTree : public octomap::OcTreeBase<SumNode> {
+ public:
+  explicit SumTree(double resolution) : octomap::OcTreeBase<SumNode>(resolution) {}
+
+  /// Adds `delta` to every voxel of the aligned block of 2^level voxels per side holding `key`.
+  void add(const octomap::OcTreeKey& key, unsigned level, std::int64_t delta);
+  SumNode* root_node() { return root; }
+  const SumNode* root_node() const { return root; }
+  /// Deletes child `i` of `parent` with its whole subtree.
+  void drop_child(SumNode* parent, unsigned i);
+  /// Deletes everything.
+  void drop_all();
+  /// Forgets the cached descent (call before changing the structure other than by add()).
+  void forget_path() { path_depth_ = 0; }
+
+ private:
+  SumNode* descend(const octomap::OcTreeKey& key, unsigned depth, bool& fresh);
+  SumNode* new_child(SumNode* node, unsigned i, std::int64_t value);
+  void add_subtree(SumNode* node, std::int64_t delta);
+
+  std::array<SumNode*, 17> path_{};  ///< nodes of the last descent, by depth
+  octomap::OcTreeKey path_key_;
+  unsigned path_depth_ = 0;
+};
+
+}  // namespace mapmerge::detail

@@ -1,0 +1,224 @@
+// Incremental global fusion: after any sequence of map updates, pose changes and removals, the
+// global map equals a from-scratch fusion of the final maps, voxel by voxel. Real maps from data/.
+#include <gtest/gtest.h>
+
+#include <random>
+
+#include <Eigen/Geometry>
+
+#include "map_test_util.hpp"
+#include "mapmerge/map/crop.hpp"
+#include "mapmerge/map/global_fusion.hpp"
+#include "mapmerge/map/map_codec.hpp"
+
+namespace mapmerge {
+namespace {
+
+using Tree = std::shared_ptr<const octomap::OcTree>;
+
+struct Robot {
+  std::string id;
+  Eigen::Isometry3d T_robot_world;  ///< the robot's own (unknown) frame
+  Tree map;
+};
+
+/// The part of `world` between x0 and x1, in a frame turned by `yaw` and moved.
+Robot cut(const octomap::OcTree& world, const std::string& id, double x0, double x1, double yaw) {
+  double a[3];
+  double b[3];
+  world.getMetricMin(a[0], a[1], a[2]);
+  world.getMetricMax(b[0], b[1], b[2]);
+  const Eigen::AlignedBox3d box(Eigen::Vector3d(x0, a[1], a[2]), Eigen::Vector3d(x1, b[1], b[2]));
+  const Eigen::Isometry3d T = make_transform(1.3 * yaw, -0.7 * yaw, 0.1, 0.0, 0.0, yaw);
+  return Robot{id, T, Tree(crop_and_transform(world, box, T))};
+}
+
+Eigen::Matrix4d T_global(const Robot& r) { return r.T_robot_world.inverse().matrix(); }
+
+/// Every leaf of two canonical (pruned) trees: same keys, same depths, same log-odds.
+void expect_same_voxels(const octomap::OcTree& a, const octomap::OcTree& b) {
+  ASSERT_EQ(a.getNumLeafNodes(), b.getNumLeafNodes());
+  auto ib = b.begin_leafs();
+  std::size_t differing = 0;
+  for (auto ia = a.begin_leafs(), end = a.end_leafs(); ia != end; ++ia, ++ib) {
+    differing += ia.getKey() != ib.getKey() || ia.getDepth() != ib.getDepth() ||
+                 ia->getLogOdds() != ib->getLogOdds();
+  }
+  EXPECT_EQ(differing, 0U);
+}
+
+/// A fresh fusion of `robots` at their final maps and poses.
+std::unique_ptr<GlobalFusion> from_scratch(const std::vector<std::pair<std::string, std::pair<Tree, Eigen::Matrix4d>>>& robots,
+                                           double res) {
+  auto g = std::make_unique<GlobalFusion>(res);
+  for (const auto& [id, m] : robots) EXPECT_TRUE(g->set(id, m.first, m.second).ok) << id;
+  return g;
+}
+
+class GlobalFusionTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() { world_ = test::load("geb079.bt").release(); }
+  static void TearDownTestSuite() { delete world_; }
+  static octomap::OcTree* world_;
+};
+octomap::OcTree* GlobalFusionTest::world_ = nullptr;
+
+TEST_F(GlobalFusionTest, UpdatesPoseChangesAndRemovalsEqualAFusionFromScratch) {
+  const double res = world_->getResolution();
+  Robot r1 = cut(*world_, "r1", -20, -2, 0.0);  // the reference: identity frame
+  r1.T_robot_world = Eigen::Isometry3d::Identity();
+  r1.map = Tree(crop_and_transform(*world_, Eigen::AlignedBox3d(Eigen::Vector3d(-20, -20, -5), Eigen::Vector3d(-2, 20, 5)),
+                                   r1.T_robot_world));
+  const Robot r2 = cut(*world_, "r2", -8, 6, 1.1);
+  const Robot r3 = cut(*world_, "r3", 2, 20, -2.3);
+  const Robot r2_grown = cut(*world_, "r2", -8, 12, 1.1);  // the same frame, a grown map
+  const Robot r2_shrunk = cut(*world_, "r2", -5, 9, 1.1);  // lost and gained parts
+
+  GlobalFusion g(res);
+  ASSERT_TRUE(g.set("r1", r1.map, T_global(r1)).ok);
+  ASSERT_TRUE(g.set("r2", r2.map, T_global(r2)).ok);
+  ASSERT_TRUE(g.set("r3", r3.map, T_global(r3)).ok);
+  const GlobalFuseResult grown = g.set("r2", r2_grown.map, T_global(r2));
+  ASSERT_TRUE(grown.ok);
+  EXPECT_TRUE(grown.incremental);  // same pose, same grid: only the difference was fused
+  EXPECT_LT(grown.cubes, r2_grown.map->getNumLeafNodes() / 2);
+  // A refined pose of r3 (a few cm, a fraction of a degree): its contribution moves.
+  Eigen::Matrix4d T3 = T_global(r3);
+  T3.topLeftCorner<3, 3>() = T3.topLeftCorner<3, 3>() * Eigen::AngleAxisd(0.004, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  T3(0, 3) += 0.03;
+  const GlobalFuseResult moved = g.set("r3", r3.map, T3);
+  ASSERT_TRUE(moved.ok);
+  EXPECT_FALSE(moved.incremental);
+  g.encode();  // prunes the sums in between: later updates must not depend on it
+  g.remove("r1");
+  ASSERT_TRUE(g.set("r2", r2_shrunk.map, T_global(r2)).ok);
+  ASSERT_TRUE(g.set("r1", r1.map, T_global(r1)).ok);
+  g.remove("r3");
+  ASSERT_TRUE(g.set("r3", r3.map, T3).ok);
+  EXPECT_EQ(g.robots(), (std::vector<std::string>{"r1", "r2", "r3"}));
+
+  // From scratch, in another order.
+  const auto fresh = from_scratch({{"r3", {r3.map, T3}}, {"r1", {r1.map, T_global(r1)}}, {"r2", {r2_shrunk.map, T_global(r2)}}}, res);
+  const auto a = g.tree();
+  const auto b = fresh->tree();
+  EXPECT_GT(a->getNumLeafNodes(), 50'000U);
+  expect_same_voxels(*a, *b);
+  EXPECT_TRUE(g.encode().bt == fresh->encode().bt) << "the encoded global maps differ";
+
+  // Everything out: nothing left, not even free space.
+  for (const char* id : {"r1", "r2", "r3"}) g.remove(id);
+  EXPECT_TRUE(g.empty());
+  EXPECT_EQ(g.tree()->size(), 0U);
+  EXPECT_EQ(g.encode().nodes, 0U);
+}
+
+TEST_F(GlobalFusionTest, EncodedMapIsTheMaximumLikelihoodOfTheClampedSums) {
+  const double res = world_->getResolution();
+  const Robot r2 = cut(*world_, "r2", -8, 6, 1.1);
+  const Robot r3 = cut(*world_, "r3", 2, 20, -2.3);
+  GlobalFusion g(res);
+  ASSERT_TRUE(g.set("r2", r2.map, T_global(r2)).ok);
+  ASSERT_TRUE(g.set("r3", r3.map, T_global(r3)).ok);
+  const GlobalFusion::Encoded e = g.encode();
+  const DecodeResult d = decode_map(e.bt, Encoding::kOctomapBt, DecodeLimits{});
+  ASSERT_TRUE(d.ok()) << d.reason;
+  EXPECT_EQ(d.num_nodes, e.nodes);
+  // The body is what octomap_msgs carries: the same tree.
+  const DecodeResult body = decode_tree_body("OcTree", res, true, e.body, DecodeLimits{});
+  ASSERT_TRUE(body.ok()) << body.reason;
+  auto expected = g.tree();
+  expected->toMaxLikelihood();
+  expected->prune();
+  expect_same_voxels(*d.tree, *expected);
+  expect_same_voxels(*body.tree, *expected);
+}
+
+TEST_F(GlobalFusionTest, DisjointMapsMatchFuseIntoAndOverlapClampsOnlyTheSum) {
+  const double res = world_->getResolution();
+  const Robot r1 = cut(*world_, "r1", -20, -6, 0.4);
+  const Robot r3 = cut(*world_, "r3", 6, 20, -2.3);
+  GlobalFusion g(res);
+  ASSERT_TRUE(g.set("r1", r1.map, T_global(r1)).ok);
+  ASSERT_TRUE(g.set("r3", r3.map, T_global(r3)).ok);
+  // No voxel gets evidence from both: the same as fuse_into, up to the 1/4096 quantum.
+  octomap::OcTree reference(res);
+  FuseConfig config;
+  ASSERT_TRUE(fuse_into(reference, *r1.map, T_global(r1), config).ok);
+  ASSERT_TRUE(fuse_into(reference, *r3.map, T_global(r3), config).ok);
+  const auto mine = g.tree();
+  std::size_t checked = 0;
+  for (auto it = reference.begin_leafs(16), end = reference.end_leafs(); it != end; ++it) {
+    const octomap::OcTreeNode* n = mine->search(it.getKey());
+    ASSERT_NE(n, nullptr);
+    ASSERT_NEAR(n->getLogOdds(), it->getLogOdds(), 1.0 / 8192 + 1e-6);
+    ++checked;
+  }
+  EXPECT_GT(checked, 10'000U);
+  // Two robots on the same voxel: their evidence is summed, then clamped once.
+  GlobalFusion twice(res);
+  ASSERT_TRUE(twice.set("a", r1.map, T_global(r1)).ok);
+  ASSERT_TRUE(twice.set("b", r1.map, T_global(r1)).ok);
+  const auto both = twice.tree();
+  const float max = both->getClampingThresMaxLog();
+  const float min = both->getClampingThresMinLog();
+  for (auto it = both->begin_leafs(), end = both->end_leafs(); it != end; ++it) {
+    ASSERT_TRUE(it->getLogOdds() == max || it->getLogOdds() == min);  // 2 x 3.5 and 2 x -2.0
+  }
+}
+
+TEST_F(GlobalFusionTest, RefusedMapsLeaveTheRobotOutAndTheOthersIntact) {
+  const double res = world_->getResolution();
+  const Robot r1 = cut(*world_, "r1", -20, -6, 0.4);
+  const Robot r3 = cut(*world_, "r3", 6, 20, -2.3);
+  GlobalFusion g(res);
+  ASSERT_TRUE(g.set("r1", r1.map, T_global(r1)).ok);
+  ASSERT_TRUE(g.set("r3", r3.map, T_global(r3)).ok);
+  Eigen::Matrix4d scaled = T_global(r3);
+  scaled(0, 0) *= 2.0;
+  const GlobalFuseResult bad = g.set("r3", r3.map, scaled);
+  EXPECT_FALSE(bad.ok);
+  EXPECT_FALSE(bad.reason.empty());
+  EXPECT_FALSE(g.set("r4", nullptr, Eigen::Matrix4d::Identity()).ok);
+  EXPECT_EQ(g.robots(), std::vector<std::string>{"r1"});
+  GlobalFusion only_r1(res);
+  ASSERT_TRUE(only_r1.set("r1", r1.map, T_global(r1)).ok);
+  EXPECT_TRUE(g.encode().bt == only_r1.encode().bt) << "r3 left traces";
+  // Too much work for the limit: refused the same way.
+  FuseConfig tight;
+  tight.max_work = 1000;
+  GlobalFusion small(res, tight);
+  EXPECT_FALSE(small.set("r1", r1.map, T_global(r1)).ok);
+  EXPECT_TRUE(small.empty());
+}
+
+TEST_F(GlobalFusionTest, FinerMapsAreResampledAndProvenanceNamesEachRobot) {
+  const Robot r1 = cut(*world_, "r1", -20, -2, 0.4);
+  const Robot r2 = cut(*world_, "r2", -8, 6, 1.1);
+  GlobalFusion g(0.2);  // coarser than the maps (0.08 m): fine leaves vote per voxel
+  ASSERT_TRUE(g.set("r1", r1.map, T_global(r1)).ok);
+  ASSERT_TRUE(g.set("r2", r2.map, T_global(r2)).ok);
+  ASSERT_TRUE(g.set("r2", cut(*world_, "r2", -8, 12, 1.1).map, T_global(r2)).ok);
+  ASSERT_TRUE(g.set("r2", r2.map, T_global(r2)).ok);
+  GlobalFusion fresh(0.2);
+  ASSERT_TRUE(fresh.set("r2", r2.map, T_global(r2)).ok);
+  ASSERT_TRUE(fresh.set("r1", r1.map, T_global(r1)).ok);
+  expect_same_voxels(*g.tree(), *fresh.tree());
+
+  const Provenance p = g.provenance();
+  ASSERT_EQ(p.robots.size(), 2U);
+  EXPECT_EQ(p.robots[0].name, "r1");
+  EXPECT_TRUE(p.robots[1].T_global_robot.isApprox(T_global(r2)));
+  std::size_t by[2] = {0, 0};
+  const auto tree = g.tree();
+  for (const auto& [key, owner] : p.owner) {
+    ASSERT_LT(owner.robot, 2U);
+    ++by[owner.robot];
+    const octomap::OcTreeNode* n = tree->search(key);
+    ASSERT_NE(n, nullptr);  // every owned voxel is in the map
+  }
+  EXPECT_GT(by[0], 1000U);
+  EXPECT_GT(by[1], 1000U);
+}
+
+}  // namespace
+}  // namespace mapmerge
