@@ -14,7 +14,7 @@
 #include <Eigen/Geometry>
 
 #include "mapmerge/align/align.hpp"
-#include "mapmerge/align/map_cut.hpp"
+#include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/map_io.hpp"
 
 namespace ma = mapmerge::align;
@@ -28,7 +28,7 @@ double ms_since(Clock::time_point t0) {
 
 struct Pose {  ///< T_R in the paper's format
   double x, y, z, roll, pitch, yaw;
-  Eigen::Matrix4d matrix() const { return ma::make_transform(x, y, z, roll, pitch, yaw); }
+  Eigen::Matrix4d matrix() const { return mapmerge::paper_transform(x, y, z, roll, pitch, yaw); }
   std::string str() const {
     char b[96];
     std::snprintf(b, sizeof b, "(%.1f, %.1f, %.1f, %.0f°, %.0f°, %.0f°)", x, y, z, roll, pitch, yaw);
@@ -256,11 +256,11 @@ int main(int argc, char** argv) {
   try {
     const ma::AlignConfig base = config_path.empty() ? ma::AlignConfig{} : ma::load_align_config(config_path);
     std::unique_ptr<octomap::OcTree> tree = mapmerge::read_octree_file(map_path);
-    if (coarsen > 1) tree = ma::coarsen(*tree, coarsen);
+    if (coarsen > 1) tree = mapmerge::coarsen(*tree, coarsen);
     std::string name = map_path.substr(map_path.find_last_of('/') + 1);
     if (z_min > -1e8 || z_max < 1e8) {
       const Eigen::AlignedBox3d slab(Eigen::Vector3d(-1e6, -1e6, z_min), Eigen::Vector3d(1e6, 1e6, z_max));
-      tree = ma::cut_and_move(*tree, slab, Eigen::Matrix4d::Identity());
+      tree = mapmerge::crop_and_transform(*tree, slab, Eigen::Isometry3d::Identity());
       name += " z " + fmt(z_min, 1) + ".." + fmt(z_max, 1) + " m";
     }
     if (coarsen > 1) name += " @" + fmt(tree->getResolution(), 2) + "m";
@@ -274,8 +274,8 @@ int main(int argc, char** argv) {
     if (!write_pair.empty() || paper_pair) {
       const Eigen::AlignedBox3d scene_box(Eigen::Vector3d(-10, -10, 0), Eigen::Vector3d(2, 10, 2));
       const Eigen::AlignedBox3d model_box(Eigen::Vector3d(-2, -10, 0), Eigen::Vector3d(10, 10, 2));
-      auto scene = ma::cut_and_move(*tree, scene_box, Eigen::Matrix4d::Identity());
-      auto model = ma::cut_and_move(*tree, model_box, paper.matrix());
+      auto scene = mapmerge::crop_and_transform(*tree, scene_box, Eigen::Isometry3d::Identity());
+      auto model = mapmerge::crop_and_transform(*tree, model_box, Eigen::Isometry3d(paper.matrix()));
       if (!write_pair.empty()) {
         mapmerge::write_octree_file(*scene, write_pair + "/scene.bt");
         mapmerge::write_octree_file(*model, write_pair + "/model.bt");
@@ -284,7 +284,7 @@ int main(int argc, char** argv) {
       }
       const Eigen::AlignedBox3d both(Eigen::Vector3d(-2, -10, 0), Eigen::Vector3d(2, 10, 2));
       const Eigen::AlignedBox3d all(Eigen::Vector3d(-10, -10, 0), Eigen::Vector3d(10, 10, 2));
-      const double r = double(ma::count_occupied(*tree, both)) / double(ma::count_occupied(*tree, all));
+      const double r = double(mapmerge::count_occupied(*tree, both)) / double(mapmerge::count_occupied(*tree, all));
       std::map<std::string, std::pair<Prepared, Prepared>> cache;
       for (const Variant& v : variants) {
         auto& slot = cache[prep_key(v.config)];
@@ -304,11 +304,11 @@ int main(int argc, char** argv) {
       Eigen::AlignedBox3d source_box = target_box;
       target_box.max()(axis) = cut_hi;
       source_box.min()(axis) = cut_lo;
-      auto target = ma::cut_and_move(*tree, target_box, Eigen::Matrix4d::Identity());
+      auto target = mapmerge::crop_and_transform(*tree, target_box, Eigen::Isometry3d::Identity());
       std::map<std::string, Prepared> target_cache;
       for (int t = 0; t < trials; ++t) {
         const Pose pose{shift(rng), shift(rng), lift(rng), tilt(rng), tilt(rng), yaw(rng)};
-        auto source = ma::cut_and_move(*tree, source_box, pose.matrix());
+        auto source = mapmerge::crop_and_transform(*tree, source_box, Eigen::Isometry3d(pose.matrix()));
         std::map<std::string, Prepared> source_cache;
         const std::size_t nv = t < variant_trials ? variants.size() : 1;
         for (std::size_t vi = 0; vi < nv; ++vi) {

@@ -14,7 +14,7 @@
 #include <CLI/CLI.hpp>
 
 #include "fleet.hpp"
-#include "mapmerge/align/map_cut.hpp"
+#include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/map_codec.hpp"
 #include "server_process.hpp"
 
@@ -87,7 +87,7 @@ std::vector<BenchRobot> make_robots(const octomap::OcTree& world, int n, double 
       return Eigen::AlignedBox3d(Eigen::Vector3d(x0 + i * step, y0, z0), Eigen::Vector3d(x0 + i * step + length + extra, y1, z1));
     };
     const Eigen::Matrix4d T = i == 0 ? Eigen::Matrix4d::Identity()
-                                     : mapmerge::align::make_transform(off(rng), off(rng), 0, tilt(rng), tilt(rng), yaw(rng));
+                                     : mapmerge::paper_transform(off(rng), off(rng), 0, tilt(rng), tilt(rng), yaw(rng));
     const std::string id = "r" + std::to_string(i + 1);
     robots.push_back({mt::cut_robot_map(world, id, box(0), T), mt::cut_robot_map(world, id, box(grow), T)});
   }

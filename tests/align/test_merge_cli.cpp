@@ -8,11 +8,10 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
-#include "mapmerge/align/map_cut.hpp"
+#include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/map_io.hpp"
 
 namespace fs = std::filesystem;
-namespace ma = mapmerge::align;
 
 namespace {
 
@@ -49,10 +48,12 @@ class MergeCli : public ::testing::Test {
     const Box scene(Eigen::Vector3d(-10, -10, 0), Eigen::Vector3d(2, 10, 2));
     const Box model(Eigen::Vector3d(-2, -10, 0), Eigen::Vector3d(10, 10, 2));
     const Box far(Eigen::Vector3d(14, -10, 0), Eigen::Vector3d(26, 10, 2));
-    T_R_ = ma::make_transform(12, 6, 0.5, 5, 5, 60);
-    mapmerge::write_octree_file(*ma::cut_and_move(*tree, scene, Eigen::Matrix4d::Identity()), path("scene.bt"));
-    mapmerge::write_octree_file(*ma::cut_and_move(*tree, model, T_R_), path("model.ot"));
-    mapmerge::write_octree_file(*ma::cut_and_move(*tree, far, T_R_), path("far.bt"));
+    T_R_ = mapmerge::paper_transform(12, 6, 0.5, 5, 5, 60);
+    const Eigen::Isometry3d T_R(T_R_);
+    mapmerge::write_octree_file(*mapmerge::crop_and_transform(*tree, scene, Eigen::Isometry3d::Identity()),
+                                path("scene.bt"));
+    mapmerge::write_octree_file(*mapmerge::crop_and_transform(*tree, model, T_R), path("model.ot"));
+    mapmerge::write_octree_file(*mapmerge::crop_and_transform(*tree, far, T_R), path("far.bt"));
     std::ofstream(path("empty.bt")).close();
     std::ofstream(path("garbage.bt")) << "# Octomap OcTree binary file\nid OcTree\nres 0.05\ndata\n\x01\x02\x03";
     std::ofstream(path("map.txt")) << "not a map";
@@ -86,7 +87,7 @@ TEST_F(MergeCli, AcceptedPairPrintsJsonAndWritesTheFusedMap) {
   const auto scene = mapmerge::read_octree_file(path("scene.bt"));
   using Box = Eigen::AlignedBox3d;
   const Box all(Eigen::Vector3d::Constant(-1e6), Eigen::Vector3d::Constant(1e6));
-  EXPECT_GT(ma::count_occupied(*merged, all), ma::count_occupied(*scene, all) * 3 / 2);
+  EXPECT_GT(mapmerge::count_occupied(*merged, all), mapmerge::count_occupied(*scene, all) * 3 / 2);
 }
 
 TEST_F(MergeCli, NoOverlapExitsThreeAndWritesNothing) {

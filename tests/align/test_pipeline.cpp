@@ -4,7 +4,7 @@
 #include <gtest/gtest.h>
 
 #include "mapmerge/align/align.hpp"
-#include "mapmerge/align/map_cut.hpp"
+#include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/map_io.hpp"
 
 namespace ma = mapmerge::align;
@@ -41,8 +41,8 @@ struct Pair {
 };
 
 Pair make_pair(const octomap::OcTree& tree, const Box& a, const Box& b, const Eigen::Matrix4d& T_R) {
-  return {ma::cut_and_move(tree, a, Eigen::Matrix4d::Identity()), ma::cut_and_move(tree, b, T_R),
-          T_R.inverse()};
+  return {mapmerge::crop_and_transform(tree, a, Eigen::Isometry3d::Identity()),
+          mapmerge::crop_and_transform(tree, b, Eigen::Isometry3d(T_R)), T_R.inverse()};
 }
 
 const octomap::OcTree& fr079() {
@@ -56,7 +56,7 @@ TEST(AlignPipeline, RecoversThePapersPair) {
   // ../shared/data/README.md: scene (-10,-10,0)-(2,10,2), model (-2,-10,0)-(10,10,2) moved by
   // T_R = (12, 6, 0.5, 5°, 5°, 60°); overlap about 24 %.
   const Pair p = make_pair(fr079(), box(-10, -10, 0, 2, 10, 2), box(-2, -10, 0, 10, 10, 2),
-                           ma::make_transform(12, 6, 0.5, 5, 5, 60));
+                           mapmerge::paper_transform(12, 6, 0.5, 5, 5, 60));
   const ma::AlignResult r = ma::align_maps(p.target, p.source, ma::AlignConfig{});
   ASSERT_TRUE(r.accepted) << r.reason;
   const Errors e = errors(r.T_target_source, p.T_true);
@@ -71,7 +71,7 @@ TEST(AlignPipeline, RecoversThePapersPair) {
 TEST(AlignPipeline, RecoversLargeYawOnACoarserMap) {
   const auto tree = load("geb079.bt");  // 8 cm
   const Pair p = make_pair(*tree, box(-9, -9, -1, 12, 9, 4), box(6, -9, -1, 31, 9, 4),
-                           ma::make_transform(-4, 7, 0.3, -3, 2, 155));
+                           mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155));
   const ma::AlignResult r = ma::align_maps(p.target, p.source, ma::AlignConfig{});
   ASSERT_TRUE(r.accepted) << r.reason;
   const Errors e = errors(r.T_target_source, p.T_true);
@@ -82,7 +82,7 @@ TEST(AlignPipeline, RecoversLargeYawOnACoarserMap) {
 TEST(AlignPipeline, RecoversARoomWithSubmodels) {
   const auto tree = load("fr_078_tidyup.bt");
   const Pair p = make_pair(*tree, box(-11, -9, -2, -1, 6, 4), box(-6, -9, -2, 3, 6, 4),
-                           ma::make_transform(3, -2, 0, 2, -2, -100));
+                           mapmerge::paper_transform(3, -2, 0, 2, -2, -100));
   ma::AlignConfig c;
   c.submodels.enabled = true;
   const ma::AlignResult r = ma::align_maps(p.target, p.source, c);
@@ -96,7 +96,7 @@ TEST(AlignPipeline, RecoversARoomWithSubmodels) {
 TEST(AlignPipeline, DisjointPartsOfTheSameCorridorAreNotAccepted) {
   // Two stretches of the same repetitive corridor with no common voxel.
   const Pair p = make_pair(fr079(), box(-10, -10, -1, 2, 10, 3), box(8, -10, -1, 20, 10, 3),
-                           ma::make_transform(5, 5, 0, 0, 0, 90));
+                           mapmerge::paper_transform(5, 5, 0, 0, 0, 90));
   const ma::AlignResult r = ma::align_maps(p.target, p.source, ma::AlignConfig{});
   EXPECT_FALSE(r.accepted) << "accepted a transform between disjoint maps";
   EXPECT_FALSE(r.reason.empty());
@@ -105,7 +105,8 @@ TEST(AlignPipeline, DisjointPartsOfTheSameCorridorAreNotAccepted) {
 
 TEST(AlignPipeline, DifferentBuildingsAreNotAccepted) {
   const auto room = load("fr_078_tidyup.bt");
-  std::shared_ptr<const octomap::OcTree> corridor = ma::cut_and_move(fr079(), box(-10, -10, -1, 5, 10, 3), Eigen::Matrix4d::Identity());
+  std::shared_ptr<const octomap::OcTree> corridor =
+      mapmerge::crop_and_transform(fr079(), box(-10, -10, -1, 5, 10, 3), Eigen::Isometry3d::Identity());
   const ma::AlignResult r = ma::align_maps(room, corridor,
                                            ma::AlignConfig{});
   EXPECT_FALSE(r.accepted);
@@ -113,12 +114,12 @@ TEST(AlignPipeline, DifferentBuildingsAreNotAccepted) {
 
 TEST(AlignPipeline, RefineFromAKnownTransformAndValidate) {
   const Pair p = make_pair(fr079(), box(-10, -10, 0, 2, 10, 2), box(-4, -10, 0, 8, 10, 2),
-                           ma::make_transform(-3, 2, 0.2, 1, -1, -35));
+                           mapmerge::paper_transform(-3, 2, 0.2, 1, -1, -35));
   const ma::AlignConfig c;
   const ma::PreparedMap target = ma::prepare_map(p.target, c);
   const ma::PreparedMap source = ma::prepare_map(p.source, c);
   // Start 0.25 m and 3 degrees off (a robot's map grew or drifted).
-  const Eigen::Matrix4d T0 = ma::make_transform(0.2, -0.15, 0.0, 0, 0, 3) * p.T_true;
+  const Eigen::Matrix4d T0 = mapmerge::paper_transform(0.2, -0.15, 0.0, 0, 0, 3) * p.T_true;
   const ma::AlignResult r = ma::refine(target, source, T0, c);
   ASSERT_TRUE(r.accepted) << r.reason;
   const Errors e = errors(r.T_target_source, p.T_true);
@@ -129,7 +130,7 @@ TEST(AlignPipeline, RefineFromAKnownTransformAndValidate) {
   EXPECT_GT(right.inlier_share, 0.9);
   EXPECT_LT(right.fitness, 0.05);
   // The same corridor turned by 180 degrees about its centre lands walls in free space.
-  const Eigen::Matrix4d flip = ma::make_transform(0, 0, 0, 0, 0, 180) * p.T_true;
+  const Eigen::Matrix4d flip = mapmerge::paper_transform(0, 0, 0, 0, 0, 180) * p.T_true;
   const ma::Validation wrong = ma::validate(target, source, flip, c);
   EXPECT_LT(wrong.inlier_share, right.inlier_share);
   const ma::AlignResult from_wrong = ma::refine(target, source, flip, c);

@@ -6,8 +6,8 @@
 
 #include <Eigen/Geometry>
 
-#include "mapmerge/align/map_cut.hpp"
 #include "mapmerge/align/stages.hpp"
+#include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/map_io.hpp"
 
 namespace ma = mapmerge::align;
@@ -35,7 +35,7 @@ TEST(ToPoints, RealMapCountsEveryOccupiedVoxel) {
   const auto tree = mapmerge::read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/geb079.bt");
   const auto points = ma::to_points(*tree, {});
   const Eigen::AlignedBox3d all(Eigen::Vector3d::Constant(-1e6), Eigen::Vector3d::Constant(1e6));
-  EXPECT_EQ(points.size(), ma::count_occupied(*tree, all));
+  EXPECT_EQ(points.size(), mapmerge::count_occupied(*tree, all));
   EXPECT_GT(points.size(), tree->getNumLeafNodes() / 10);
   ma::ToPointsConfig tight;
   tight.max_points = 1000;

@@ -9,7 +9,7 @@
 
 #include <fastdds/dds/subscriber/SampleInfo.hpp>
 
-#include "mapmerge/align/map_cut.hpp"
+#include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/map_codec.hpp"
 #include "mapmerge/map/map_io.hpp"
 #include "mapmerge/wire/topics.hpp"
@@ -22,7 +22,7 @@ using ReturnCode_t = eprosima::fastrtps::types::ReturnCode_t;
 
 RobotMap cut_robot_map(const octomap::OcTree& world, const std::string& id, const Eigen::AlignedBox3d& box,
                        const Eigen::Matrix4d& T_robot_world) {
-  return RobotMap{id, align::cut_and_move(world, box, T_robot_world), T_robot_world};
+  return RobotMap{id, mapmerge::crop_and_transform(world, box, Eigen::Isometry3d(T_robot_world)), T_robot_world};
 }
 
 std::shared_ptr<const octomap::OcTree> load_data_map(const std::string& name) {

@@ -10,7 +10,7 @@
 
 #include "dds_test_env.hpp"
 #include "fleet.hpp"
-#include "mapmerge/align/map_cut.hpp"
+#include "mapmerge/map/crop.hpp"
 #include "server_process.hpp"
 
 namespace mapmerge::test {
@@ -30,9 +30,9 @@ inline Eigen::AlignedBox3d strip(double x0, double x1) {
 struct Fleet {
   std::shared_ptr<const octomap::OcTree> world = load_data_map("geb079.bt");
   std::vector<RobotMap> robots{
-      cut_robot_map(*world, "r1", strip(-8, 12), align::make_transform(1, 2, 0, 0, 0, 30)),
-      cut_robot_map(*world, "r2", strip(4, 24), align::make_transform(-4, 7, 0.3, -3, 2, 155)),
-      cut_robot_map(*world, "r3", strip(14, 31), align::make_transform(5, -3, 0.2, 2, -1, -70))};
+      cut_robot_map(*world, "r1", strip(-8, 12), mapmerge::paper_transform(1, 2, 0, 0, 0, 30)),
+      cut_robot_map(*world, "r2", strip(4, 24), mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155)),
+      cut_robot_map(*world, "r3", strip(14, 31), mapmerge::paper_transform(5, -3, 0.2, 2, -1, -70))};
   /// The truth: T_global_robot = T_r1_world * T_robot_world^-1.
   Eigen::Matrix4d truth(std::size_t i) const { return robots[0].T_robot_world * robots[i].T_robot_world.inverse(); }
 };

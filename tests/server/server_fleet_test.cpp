@@ -7,7 +7,6 @@ namespace mapmerge::test {
 namespace {
 
 using Box = Eigen::AlignedBox3d;
-namespace ma = mapmerge::align;
 
 TEST_F(ServerFleet, ThreeRobotsAreAlignedAndAStrangerStaysUnknown) {
   auto server = start_server({"--reference", "r1"});
@@ -19,7 +18,7 @@ TEST_F(ServerFleet, ThreeRobotsAreAlignedAndAStrangerStaysUnknown) {
   }
   const auto stranger_world = load_data_map("fr_078_tidyup.bt");
   const auto stranger = cut_robot_map(*stranger_world, "r4", Box(Eigen::Vector3d(-10, -8, -2), Eigen::Vector3d(2, 6, 4)),
-                                      ma::make_transform(0, 0, 0, 0, 0, 45));
+                                      mapmerge::paper_transform(0, 0, 0, 0, 0, 45));
   RobotPublisher r4(domain, "r4");
   r4.publish(*stranger.tree);
 

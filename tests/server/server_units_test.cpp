@@ -11,7 +11,7 @@
 
 #include "fleet.hpp"
 #include "server_process.hpp"
-#include "mapmerge/align/map_cut.hpp"
+#include "mapmerge/map/crop.hpp"
 #include "mapmerge/server/config.hpp"
 #include "mapmerge/server/global_map.hpp"
 #include "mapmerge/server/merge_ops.hpp"
@@ -80,8 +80,8 @@ Edge quality_edge(const std::string& target, const std::string& source, const Ei
 TEST(Registry, PosesComeFromThePoseGraphWithQuality) {
   Registry r;
   add_robots(r, 3);
-  const Eigen::Matrix4d T12 = align::make_transform(2, 1, 0, 0, 0, 30);
-  const Eigen::Matrix4d T23 = align::make_transform(-1, 3, 0.2, 0, 0, -50);
+  const Eigen::Matrix4d T12 = mapmerge::paper_transform(2, 1, 0, 0, 0, 30);
+  const Eigen::Matrix4d T23 = mapmerge::paper_transform(-1, 3, 0.2, 0, 0, -50);
   r.put_edge(quality_edge("r1", "r2", T12));
   r.put_edge(quality_edge("r2", "r3", T23));
   const auto poses = r.poses();
@@ -99,11 +99,11 @@ TEST(Registry, WrongEdgeIsRejectedByCycleConsistency) {
   Registry r;
   add_robots(r, 5);
   std::vector<Eigen::Matrix4d> T_global(6, Eigen::Matrix4d::Identity());
-  for (int i = 2; i <= 5; ++i) T_global[i] = align::make_transform(4.0 * i, 1.0 - i, 0.1 * i, 0, 0, 35.0 * i);
+  for (int i = 2; i <= 5; ++i) T_global[i] = mapmerge::paper_transform(4.0 * i, 1.0 - i, 0.1 * i, 0, 0, 35.0 * i);
   for (int t = 1; t <= 5; ++t) {
     for (int s = t + 1; s <= 5; ++s) {
       Eigen::Matrix4d T_t_s = rigid_inverse(T_global[t]) * T_global[s];
-      if (t == 3 && s == 5) T_t_s = T_t_s * align::make_transform(0.5, 0, 0, 0, 0, 25);
+      if (t == 3 && s == 5) T_t_s = T_t_s * mapmerge::paper_transform(0.5, 0, 0, 0, 0, 25);
       r.put_edge(quality_edge("r" + std::to_string(t), "r" + std::to_string(s), T_t_s));
     }
   }
@@ -144,9 +144,9 @@ TEST(Registry, NewSessionDropsTheRobotsAlignments) {
 }
 
 TEST(PoseGraph, ComposesTransformsAlongTheBestPath) {
-  const Eigen::Matrix4d T12 = align::make_transform(1, 2, 0, 0, 0, 30);
-  const Eigen::Matrix4d T23 = align::make_transform(-3, 1, 0.5, 2, 0, -60);
-  const Eigen::Matrix4d T13_bad = align::make_transform(9, 9, 9, 0, 0, 0);
+  const Eigen::Matrix4d T12 = mapmerge::paper_transform(1, 2, 0, 0, 0, 30);
+  const Eigen::Matrix4d T23 = mapmerge::paper_transform(-3, 1, 0.5, 2, 0, -60);
+  const Eigen::Matrix4d T13_bad = mapmerge::paper_transform(9, 9, 9, 0, 0, 0);
   // r1 <- r2 <- r3 with good edges; a direct r1 <- r3 edge with a poor fitness loses.
   const std::vector<Edge> edges{{"r1", "r2", T12, 0.02}, {"r3", "r2", rigid_inverse(T23), 0.02},
                                 {"r1", "r3", T13_bad, 0.5}, {"r4", "r5", T12, 0.01}};
@@ -208,7 +208,7 @@ TEST(Store, SurvivesReopeningAndKeepsTheLastOfEverything) {
   g.version = 12;
   g.data = {9, 9};
   g.contributors = {{"r1", "s", 7}};
-  const Eigen::Matrix4d T = align::make_transform(1, 2, 3, 10, 20, 30);
+  const Eigen::Matrix4d T = mapmerge::paper_transform(1, 2, 3, 10, 20, 30);
   {
     Store s(cfg);
     s.save_map(m);

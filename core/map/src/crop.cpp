@@ -1,5 +1,8 @@
 #include "mapmerge/map/crop.hpp"
 
+#include <cmath>
+#include <stdexcept>
+
 namespace mapmerge {
 
 Eigen::Isometry3d make_transform(double x, double y, double z, double roll, double pitch, double yaw) {
@@ -12,7 +15,41 @@ Eigen::Isometry3d make_transform(double x, double y, double z, double roll, doub
   return T;
 }
 
+Eigen::Matrix4d paper_transform(double x, double y, double z, double roll_deg, double pitch_deg,
+                                  double yaw_deg) {
+  const double k = M_PI / 180.0;
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear() = (Eigen::AngleAxisd(roll_deg * k, Eigen::Vector3d::UnitX()) *
+                Eigen::AngleAxisd(pitch_deg * k, Eigen::Vector3d::UnitY()) *
+                Eigen::AngleAxisd(yaw_deg * k, Eigen::Vector3d::UnitZ()))
+                   .toRotationMatrix();
+  T.translation() = Eigen::Vector3d(x, y, z);
+  return T.matrix();
+}
+
 namespace {
+
+/// Calls f(centre, log_odds, occupied) for every full-resolution voxel centre of `tree` in `box`.
+template <class F>
+void for_each_voxel(const octomap::OcTree& tree, const Eigen::AlignedBox3d& box, F&& f) {
+  const double res = tree.getResolution();
+  for (auto it = tree.begin_leafs(), end = tree.end_leafs(); it != end; ++it) {
+    const double half = it.getSize() / 2.0;
+    const octomap::point3d c = it.getCoordinate();
+    const Eigen::Vector3d centre(c.x(), c.y(), c.z());
+    const Eigen::AlignedBox3d leaf(centre.array() - half, centre.array() + half);
+    if (!box.intersects(leaf)) continue;
+    const bool occupied = tree.isNodeOccupied(*it);
+    const float value = it->getLogOdds();
+    const int n = static_cast<int>(it.getSize() / res + 0.5);
+    for (int i = 0; i < n; ++i)
+      for (int j = 0; j < n; ++j)
+        for (int k = 0; k < n; ++k) {
+          const Eigen::Vector3d p = leaf.min() + res * Eigen::Vector3d(i + 0.5, j + 0.5, k + 0.5);
+          if (box.contains(p)) f(p, value, occupied);
+        }
+  }
+}
 
 /// Sets every output cell whose centre maps back (T_in_out) into the input voxel `key_in`:
 /// nearest-cell resampling, so a rotated map has neither holes nor thickened surfaces.
@@ -74,6 +111,31 @@ std::unique_ptr<octomap::OcTree> crop_and_transform(const octomap::OcTree& tree,
   out->updateInnerOccupancy();
   out->prune();
   return out;
+}
+
+std::unique_ptr<octomap::OcTree> coarsen(const octomap::OcTree& tree, int factor) {
+  if (factor < 1) throw std::invalid_argument("coarsen: factor must be >= 1");
+  auto out = std::make_unique<octomap::OcTree>(tree.getResolution() * factor);
+  out->setClampingThresMin(tree.getClampingThresMin());
+  out->setClampingThresMax(tree.getClampingThresMax());
+  out->setOccupancyThres(tree.getOccupancyThres());
+  const Eigen::AlignedBox3d all(Eigen::Vector3d::Constant(-1e9), Eigen::Vector3d::Constant(1e9));
+  for (const bool want_occupied : {false, true}) {  // occupied last: it wins a coarse voxel
+    for_each_voxel(tree, all, [&](const Eigen::Vector3d& p, float value, bool occupied) {
+      octomap::OcTreeKey key;
+      if (occupied == want_occupied && out->coordToKeyChecked(p.x(), p.y(), p.z(), key))
+        out->setNodeValue(key, value, /*lazy_eval=*/true);
+    });
+  }
+  out->updateInnerOccupancy();
+  out->prune();
+  return out;
+}
+
+std::size_t count_occupied(const octomap::OcTree& tree, const Eigen::AlignedBox3d& box) {
+  std::size_t n = 0;
+  for_each_voxel(tree, box, [&](const Eigen::Vector3d&, float, bool occupied) { n += occupied ? 1 : 0; });
+  return n;
 }
 
 }  // namespace mapmerge
