@@ -62,3 +62,22 @@ TEST(AlignConfig, YamlDumpRoundTrips) {
   EXPECT_EQ(ma::dump_align_config_yaml(back), ma::dump_align_config_yaml(c));
   EXPECT_NE(ma::dump_align_config_json(c).find("\"prerejective\""), std::string::npos);
 }
+
+TEST(AlignConfig, LengthUnitsAreMetricAndFlooredAtTheVoxel) {
+  const ma::AlignConfig c;
+  for (const double res : {0.02, 0.05}) {  // RGB-D and indoor maps: the same metric features
+    const ma::LengthUnits u = ma::length_units(res, c);
+    EXPECT_DOUBLE_EQ(u.res, res);
+    EXPECT_DOUBLE_EQ(u.feature, 0.05);
+    EXPECT_DOUBLE_EQ(u.preprocess, 0.05);
+    EXPECT_DOUBLE_EQ(u.refine, 0.05);
+  }
+  const ma::LengthUnits coarse = ma::length_units(0.2, c);  // outdoor: clouds keep >= 1 voxel per leaf
+  EXPECT_GE(c.describe.voxel_size * coarse.feature, 0.2 - 1e-12);
+  EXPECT_GE(c.preprocess.voxel_size * coarse.preprocess, 0.2 - 1e-12);
+  EXPECT_DOUBLE_EQ(coarse.refine, 0.2);
+  ma::AlignConfig scaled;
+  scaled.scale.feature_unit = 0.0;  // every length follows the resolution
+  EXPECT_DOUBLE_EQ(ma::length_units(0.02, scaled).feature, 0.02);
+}
+

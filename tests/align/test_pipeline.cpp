@@ -79,6 +79,19 @@ TEST(AlignPipeline, RecoversLargeYawOnACoarserMap) {
   EXPECT_LT(e.trans_m, 2 * tree->getResolution());
 }
 
+TEST(AlignPipeline, SameDefaultsRecoverAnOutdoorScaleMap) {
+  // fr_079 coarsened to 0.2 m (outdoor-map voxels): no preset, the defaults of the 5 cm maps.
+  const auto coarse = mapmerge::coarsen(fr079(), 4);
+  ASSERT_NEAR(coarse->getResolution(), 0.2, 1e-9);
+  const Pair p = make_pair(*coarse, box(-20, -10, -1, 6, 10, 4), box(-4, -10, -1, 24, 10, 4),
+                           mapmerge::paper_transform(6, -3, 0.2, 2, -3, 120));
+  const ma::AlignResult r = ma::align_maps(p.target, p.source, ma::AlignConfig{});
+  ASSERT_TRUE(r.accepted) << r.reason;
+  const Errors e = errors(r.T_target_source, p.T_true);
+  EXPECT_LT(e.rot_deg, 1.0);
+  EXPECT_LT(e.trans_m, coarse->getResolution());
+}
+
 TEST(AlignPipeline, RecoversARoomWithSubmodels) {
   const auto tree = load("fr_078_tidyup.bt");
   const Pair p = make_pair(*tree, box(-11, -9, -2, -1, 6, 4), box(-6, -9, -2, 3, 6, 4),

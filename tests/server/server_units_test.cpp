@@ -331,7 +331,7 @@ RobotRecord record_of(const test::RobotMap& robot, std::uint64_t sequence) {
 
 TEST(GlobalMapBuilder, AGrownMapIsFusedByItsDifferenceAndEqualsAFreshBuild) {
   const auto world = test::load_data_map("geb079.bt");
-  const Eigen::Matrix4d T2 = align::make_transform(-4, 7, 0.3, -3, 2, 155);
+  const Eigen::Matrix4d T2 = mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155);
   const auto r1 = test::cut_robot_map(*world, "r1", box(-8, 12), Eigen::Matrix4d::Identity());
   const auto r2 = test::cut_robot_map(*world, "r2", box(4, 24), T2);
   const auto r2_grown = test::cut_robot_map(*world, "r2", box(4, 30), T2);

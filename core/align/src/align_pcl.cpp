@@ -235,20 +235,22 @@ Cloud overlap_sample(const Cloud& full, const pcl::KdTreeFLANN<Point>& tree, con
 }
 
 Eigen::Matrix4d icp(const PreparedMap::Impl& source, const Cloud::Ptr& target_crop,
-                    const Eigen::Matrix4d& T0, const RefineConfig& c, double res,
+                    const Eigen::Matrix4d& T0, const RefineConfig& c, const LengthUnits& units,
                     std::size_t max_points) {
   if (target_crop->size() < 10) return T0;
   pcl::KdTreeFLANN<Point> tree;
   tree.setInputCloud(target_crop);
   // Source: full-resolution voxel centres (not the downsampled cloud), so the result is not
   // quantised by the describe voxel; target: downsampled points with their local planes.
-  const Cloud src = overlap_sample(*source.full, tree, T0, c.max_correspondence * res, max_points);
+  const double first = c.max_correspondence * units.refine;
+  const double last = c.final_correspondence * units.res;
+  const Cloud src = overlap_sample(*source.full, tree, T0, first, max_points);
   Eigen::Matrix4d T = T0;
   const int ramp = std::max(1, c.max_iterations / 3);  // iterations to reach final_correspondence
   for (int it = 0; it < c.max_iterations; ++it) {
     const double f = std::min(1.0, static_cast<double>(it) / ramp);
-    const double dmax = (c.max_correspondence + f * (c.final_correspondence - c.max_correspondence)) * res;
-    const Normal6 sys = icp_system(src, 1, *target_crop, tree, T, dmax, c.max_correspondence * res, c, dmax / 2.0);
+    const double dmax = first + f * (last - first);
+    const Normal6 sys = icp_system(src, 1, *target_crop, tree, T, dmax, first, c, dmax / 2.0);
     if (sys.pairs < 6) break;
     const Eigen::Matrix<double, 6, 6> A = sys.A + 1e-6 * sys.A.trace() * Eigen::Matrix<double, 6, 6>::Identity();
     const Eigen::Matrix<double, 6, 1> x = -A.ldlt().solve(sys.b);
@@ -258,7 +260,7 @@ Eigen::Matrix4d icp(const PreparedMap::Impl& source, const Cloud::Ptr& target_cr
     if (angle > 0.0) dT.topLeftCorner<3, 3>() = Eigen::AngleAxisd(angle, x.head<3>() / angle).toRotationMatrix();
     dT.topRightCorner<3, 1>() = x.tail<3>();
     T = dT * T;
-    if (x.tail<3>().norm() < c.convergence_translation * res &&
+    if (x.tail<3>().norm() < c.convergence_translation * units.res &&
         angle * 180.0 / M_PI < c.convergence_rotation_deg && f >= 1.0)
       break;
   }
@@ -266,15 +268,15 @@ Eigen::Matrix4d icp(const PreparedMap::Impl& source, const Cloud::Ptr& target_cr
 }
 
 Eigen::Matrix4d ndt(const PreparedMap::Impl& source, const Cloud::Ptr& target_crop,
-                    const Eigen::Matrix4d& T0, const RefineConfig& c, double res) {
+                    const Eigen::Matrix4d& T0, const RefineConfig& c, const LengthUnits& units) {
   if (target_crop->size() < 10) return T0;
   auto src = std::make_shared<Cloud>();
   const std::size_t step = std::max<std::size_t>(1, source.cloud->size() / c.max_points);
   for (std::size_t i = 0; i < source.cloud->size(); i += step) src->push_back((*source.cloud)[i]);
   pcl::NormalDistributionsTransform<Point, Point> reg;
-  reg.setResolution(static_cast<float>(c.ndt_resolution * res));
-  reg.setStepSize(c.ndt_step * res);
-  reg.setTransformationEpsilon(c.convergence_translation * res);
+  reg.setResolution(static_cast<float>(c.ndt_resolution * units.refine));
+  reg.setStepSize(c.ndt_step * units.refine);
+  reg.setTransformationEpsilon(c.convergence_translation * units.res);
   reg.setMaximumIterations(c.max_iterations);
   reg.setInputTarget(target_crop);
   reg.setInputSource(src);
@@ -286,12 +288,13 @@ Eigen::Matrix4d ndt(const PreparedMap::Impl& source, const Cloud::Ptr& target_cr
 
 /// Stage 8. `polish`: the final pass on the chosen transform, with final_points.
 Eigen::Matrix4d local_alignment(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
-                                const Eigen::Matrix4d& T0, const RefineConfig& c, bool polish) {
+                                const Eigen::Matrix4d& T0, const AlignConfig& cfg, bool polish) {
+  const RefineConfig& c = cfg.refine;
   if (c.method == RefineMethod::kNone) return T0;
-  const double res = scale_of(target, source);
-  const Cloud::Ptr crop = crop_target(target, source, T0, c.crop_margin * res);
-  if (c.method == RefineMethod::kNdt) return polish ? T0 : ndt(source, crop, T0, c, res);
-  return icp(source, crop, T0, c, res, polish ? c.final_points : c.max_points);
+  const LengthUnits units = length_units(scale_of(target, source), cfg);
+  const Cloud::Ptr crop = crop_target(target, source, T0, c.crop_margin * units.refine);
+  if (c.method == RefineMethod::kNdt) return polish ? T0 : ndt(source, crop, T0, c, units);
+  return icp(source, crop, T0, c, units, polish ? c.final_points : c.max_points);
 }
 
 // ---------------------------------------------------------------------------------------
@@ -313,7 +316,7 @@ void add_prepare_timings(StageTimings& t, const StageTimings& m) {
 
 /// Source keypoint subsets: the blocks of stage 3 in spiral order, or the whole map.
 std::vector<std::vector<int>> keypoint_subsets(const PreparedMap::Impl& source,
-                                               const SubmodelConfig& c, double res) {
+                                               const SubmodelConfig& c, double unit) {
   std::vector<std::vector<int>> subsets;
   const std::size_t n = source.keypoints->size();
   if (!c.enabled) {
@@ -324,7 +327,7 @@ std::vector<std::vector<int>> keypoint_subsets(const PreparedMap::Impl& source,
   std::vector<Eigen::Vector3f> positions;
   positions.reserve(n);
   for (const auto& p : *source.keypoints) positions.push_back(p.getVector3fMap());
-  for (const Block& b : make_submodels(positions, c, res)) {
+  for (const Block& b : make_submodels(positions, c, unit)) {
     if (b.members.size() < c.min_keypoints) continue;
     subsets.emplace_back(b.members.begin(), b.members.end());
   }
@@ -375,7 +378,8 @@ std::vector<Candidate> search_blocks(const PreparedMap::Impl& target, const Prep
 }
 
 /// Keeps the best distinct candidates by coarse score.
-std::vector<Candidate> shortlist(std::vector<Candidate> all, const ValidateConfig& c, double res) {
+std::vector<Candidate> shortlist(std::vector<Candidate> all, const ValidateConfig& c,
+                                 const LengthUnits& units) {
   const double w = c.conflict_weight;
   std::sort(all.begin(), all.end(), [w](const Candidate& a, const Candidate& b) {
     return score_of(a.coarse, w) > score_of(b.coarse, w);
@@ -391,7 +395,7 @@ std::vector<Candidate> shortlist(std::vector<Candidate> all, const ValidateConfi
     bool dup = false;
     for (const Candidate& o : out)
       dup = dup || same_pose(o.h.T_target_source, cand.h.T_target_source, c.distinct_rotation_deg,
-                             c.distinct_translation * res);
+                             c.distinct_translation * units.feature);
     if (!dup) out.push_back(cand);
     if (out.size() >= c.refine_candidates) break;
   }
@@ -402,7 +406,9 @@ std::size_t fine_samples(const ValidateConfig& c) { return c.coarse_points * 2; 
 
 /// Sorts refined candidates by score; empty string when the best passes every test and no
 /// distinct alternative comes close (repetitive corridors, symmetric rooms), else the reason.
-std::string select_best(std::vector<Candidate>& cands, const ValidateConfig& c, double res) {
+std::string select_best(std::vector<Candidate>& cands, const ValidateConfig& c,
+                        const LengthUnits& units) {
+  const double res = units.res;
   const double w = c.conflict_weight;
   std::sort(cands.begin(), cands.end(), [w](const Candidate& a, const Candidate& b) {
     return score_of(a.fine, w) > score_of(b.fine, w);
@@ -411,7 +417,7 @@ std::string select_best(std::vector<Candidate>& cands, const ValidateConfig& c, 
   std::string why = rejection(best.fine, c, res);
   for (std::size_t i = 1; i < cands.size() && why.empty(); ++i) {
     if (same_pose(best.T_refined, cands[i].T_refined, c.distinct_rotation_deg,
-                  c.distinct_translation * res))
+                  c.distinct_translation * units.feature))
       continue;
     const double ratio = score_of(cands[i].fine, w) / std::max(1.0, score_of(best.fine, w));
     if (ratio >= c.ambiguity_ratio)
@@ -426,7 +432,7 @@ void polish(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
             std::atomic<double>& validate_ms) {
   const double res = scale_of(target, source);
   auto t0 = Clock::now();
-  const Eigen::Matrix4d T = local_alignment(target, source, best.T_refined, cfg.refine, true);
+  const Eigen::Matrix4d T = local_alignment(target, source, best.T_refined, cfg, true);
   t.refine_ms += ms_since(t0);
   t0 = Clock::now();
   const Validation v = check(target, source, T, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);
@@ -464,23 +470,24 @@ AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
   const std::vector<Match> matches = match_descriptors(target, source, cfg.match);
   add_ms(match_ms, t0);
   t0 = Clock::now();
-  const auto subsets = keypoint_subsets(source, cfg.submodels, res);
+  const LengthUnits units = length_units(res, cfg);
+  const auto subsets = keypoint_subsets(source, cfg.submodels, units.feature);
   result.timings.submodels_ms = ms_since(t0);
   std::vector<Candidate> cands =
       shortlist(search_blocks(target, source, matches, subsets, cfg, match_ms, validate_ms,
                               result.hypotheses),
-                cfg.validate, res);
+                cfg.validate, units);
   if (cands.empty())
     return finish("no hypothesis agrees with the maps (" + std::to_string(result.hypotheses) +
                   " raw, from " + std::to_string(matches.size()) + " correspondences)");
   t0 = Clock::now();
   for (Candidate& c : cands)
-    c.T_refined = local_alignment(target, source, c.h.T_target_source, cfg.refine, false);
+    c.T_refined = local_alignment(target, source, c.h.T_target_source, cfg, false);
   result.timings.refine_ms = ms_since(t0);
   t0 = Clock::now();
   for (Candidate& c : cands)
     c.fine = check(target, source, c.T_refined, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);
-  const std::string why = select_best(cands, cfg.validate, res);
+  const std::string why = select_best(cands, cfg.validate, units);
   add_ms(validate_ms, t0);
   Candidate& best = cands.front();
   if (why.empty()) polish(target, source, cfg, best, result.timings, validate_ms);
@@ -501,7 +508,7 @@ AlignResult refine(const PreparedMap& target_map, const PreparedMap& source_map,
   const PreparedMap::Impl& source = source_map.impl();
   AlignResult result;
   auto t0 = Clock::now();
-  const Eigen::Matrix4d T = local_alignment(target, source, T_target_source_init, cfg.refine, true);
+  const Eigen::Matrix4d T = local_alignment(target, source, T_target_source_init, cfg, true);
   result.timings.refine_ms = ms_since(t0);
   t0 = Clock::now();
   const Validation v = check(target, source, T, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);

@@ -1,3 +1,4 @@
+#include <algorithm>
 #include <cmath>
 #include <fstream>
 #include <map>
@@ -16,6 +17,7 @@ namespace {
 template <class Config, class F>
 void for_each_field(Config& c, F&& f) {
   f("", "seed", c.seed);
+  f("scale", "feature_unit", c.scale.feature_unit);
   f("points", "min_occupancy", c.points.min_occupancy);
   f("points", "max_points", c.points.max_points);
   auto& p = c.preprocess;
@@ -183,6 +185,16 @@ void require(bool ok, const std::string& what) {
 
 }  // namespace
 
+LengthUnits length_units(double res, const AlignConfig& c) {
+  const double u = c.scale.feature_unit > 0.0 ? c.scale.feature_unit : res;
+  LengthUnits units;
+  units.res = res;
+  units.preprocess = std::max(u, res / c.preprocess.voxel_size);  // ICP cloud leaf >= 1 voxel
+  units.feature = std::max(u, res / c.describe.voxel_size);       // describe leaf >= 1 voxel
+  units.refine = std::max(units.feature, res);
+  return units;
+}
+
 const char* to_string(Descriptor d) { return d == Descriptor::kFpfh ? "fpfh" : "shot"; }
 const char* to_string(MatchMethod m) {
   switch (m) {
@@ -204,7 +216,8 @@ const char* to_string(RefineMethod m) {
 }
 
 void check_align_config(const AlignConfig& c) {
-  require(c.preprocess.voxel_size >= 1.0, "preprocess.voxel_size >= 1 (x res)");
+  require(c.scale.feature_unit >= 0.0, "scale.feature_unit >= 0");
+  require(c.preprocess.voxel_size > 0.0, "preprocess.voxel_size > 0");
   require(c.preprocess.normal_radius > 0.0, "preprocess.normal_radius > 0");
   require(c.preprocess.outlier_mean_k >= 1, "preprocess.outlier_mean_k >= 1");
   require(c.preprocess.z_min <= c.preprocess.z_max, "preprocess.z_min <= z_max");
@@ -215,8 +228,8 @@ void check_align_config(const AlignConfig& c) {
   require(c.keypoints.salient_radius > 0.0 && c.keypoints.non_max_radius > 0.0,
           "keypoints radii > 0");
   require(c.describe.radius > 0.0, "describe.radius > 0");
-  require(c.describe.voxel_size >= 0.0 && c.describe.normal_radius > 0.0,
-          "describe.voxel_size >= 0 and describe.normal_radius > 0");
+  require(c.describe.voxel_size > 0.0 && c.describe.normal_radius > 0.0,
+          "describe.voxel_size > 0 and describe.normal_radius > 0");
   require(c.match.k_nearest >= 1, "match.k_nearest >= 1");
   require(c.match.iterations >= 1, "match.iterations >= 1");
   require(c.match.edge_similarity >= 0.0 && c.match.edge_similarity < 1.0,

@@ -249,7 +249,8 @@ std::vector<Hypothesis> generate_hypotheses(const PreparedMap::Impl& target,
                                             const std::vector<Match>& matches,
                                             const std::vector<int>& subset,
                                             const AlignConfig& config, unsigned seed) {
-  const double res = source.resolution;
+  // Lengths of this stage are in feature units (config.hpp).
+  const double res = length_units(std::max(target.resolution, source.resolution), config).feature;
   switch (config.match.method) {
     case MatchMethod::kRansac:
       return ransac(pairs_of(target, source, matches, subset), config, res, seed);

@@ -79,7 +79,8 @@ Cloud::Ptr voxel_grid(const Cloud::Ptr& cloud, double leaf_size) {
 }
 
 /// Stage 2: pass-through, ground removal, voxel grid, statistical outlier removal.
-Cloud::Ptr preprocess(const Cloud::Ptr& input, const PreprocessConfig& c, double res) {
+Cloud::Ptr preprocess(const Cloud::Ptr& input, const PreprocessConfig& c, const LengthUnits& units) {
+  const double res = units.res;
   Cloud::Ptr cloud = input;
   if (c.pass_through) {
     auto kept = std::make_shared<Cloud>();
@@ -88,7 +89,8 @@ Cloud::Ptr preprocess(const Cloud::Ptr& input, const PreprocessConfig& c, double
     cloud = kept;
   }
   if (c.remove_ground && cloud->size() > 100) cloud = remove_ground(cloud, c, res);
-  if (c.voxel_size > 1.0) cloud = voxel_grid(cloud, c.voxel_size * res);
+  const double leaf = c.voxel_size * units.preprocess;
+  if (leaf > 1.01 * res) cloud = voxel_grid(cloud, leaf);
   if (c.outlier_removal && cloud->size() > static_cast<std::size_t>(c.outlier_mean_k) + 1) {
     pcl::StatisticalOutlierRemoval<Point> sor;
     sor.setMeanK(c.outlier_mean_k);
@@ -138,11 +140,12 @@ void estimate_normals(Cloud& cloud, const octomap::OcTree& tree, bool orient, do
   }
 }
 
-pcl::IndicesPtr detect_iss(const Cloud::ConstPtr& cloud, const KeypointConfig& c, double res) {
+/// ISS keypoints; radii in units of `unit` [m].
+pcl::IndicesPtr detect_iss(const Cloud::ConstPtr& cloud, const KeypointConfig& c, double unit) {
   pcl::ISSKeypoint3D<Point, Point, Point> iss;
   iss.setInputCloud(cloud);
-  iss.setSalientRadius(c.salient_radius * res);
-  iss.setNonMaxRadius(c.non_max_radius * res);
+  iss.setSalientRadius(c.salient_radius * unit);
+  iss.setNonMaxRadius(c.non_max_radius * unit);
   iss.setThreshold21(c.gamma_21);
   iss.setThreshold32(c.gamma_32);
   iss.setMinNeighbors(c.min_neighbors);
@@ -186,8 +189,9 @@ void compute_feature(Estimator& est, const Cloud::Ptr& cloud, const pcl::Indices
   est.compute(out);
 }
 
-void describe(PreparedMap::Impl& m, const pcl::IndicesPtr& indices, const DescribeConfig& c) {
-  const double radius = c.radius * m.resolution;
+void describe(PreparedMap::Impl& m, const pcl::IndicesPtr& indices, const DescribeConfig& c,
+              double unit) {
+  const double radius = c.radius * unit;
   const unsigned threads = static_cast<unsigned>(std::max(1, c.threads));
   if (c.method == Descriptor::kFpfh) {
     auto features = std::make_shared<pcl::PointCloud<Fpfh>>();
@@ -258,37 +262,38 @@ PreparedMap prepare_map(std::shared_ptr<const octomap::OcTree> shared, const Ali
   m->full = to_cloud(points);
   m->full_tree = std::make_shared<pcl::KdTreeFLANN<Point>>();
   m->full_tree->setInputCloud(m->full);
-  m->cloud = preprocess(m->full, config.preprocess, m->resolution);
+  const LengthUnits units = length_units(m->resolution, config);
+  m->cloud = preprocess(m->full, config.preprocess, units);
   if (m->cloud->size() < 10) throw std::invalid_argument("map has fewer than 10 points after preprocessing");
-  estimate_normals(*m->cloud, tree, false, config.preprocess.normal_radius * m->resolution,
+  estimate_normals(*m->cloud, tree, false, config.preprocess.normal_radius * units.preprocess,
                    m->resolution);
   m->cloud_tree = std::make_shared<pcl::KdTreeFLANN<Point>>();
   m->cloud_tree->setInputCloud(m->cloud);
-  m->coarse = voxel_grid(m->cloud, config.describe.voxel_size * m->resolution);
+  m->coarse = voxel_grid(m->cloud, config.describe.voxel_size * units.feature);
   estimate_normals(*m->coarse, tree, config.preprocess.orient_normals_to_free,
-                   config.describe.normal_radius * m->resolution, m->resolution);
+                   config.describe.normal_radius * units.feature, m->resolution);
   m->timings.preprocess_ms = ms_since(t0);
 
   t0 = Clock::now();
-  const pcl::IndicesPtr indices = detect_iss(m->coarse, config.keypoints, m->resolution);
+  const pcl::IndicesPtr indices = detect_iss(m->coarse, config.keypoints, units.feature);
   m->timings.keypoints_ms = ms_since(t0);
 
   t0 = Clock::now();
-  describe(*m, indices, config.describe);
+  describe(*m, indices, config.describe, units.feature);
   m->timings.describe_ms = ms_since(t0);
   m->timings.total_ms = ms_since(t_start);
   return PreparedMap(std::move(m));
 }
 
 std::vector<std::size_t> iss_keypoints(const std::vector<Eigen::Vector3f>& points,
-                                       const KeypointConfig& config, double resolution) {
+                                       const KeypointConfig& config, double unit) {
   auto cloud = std::make_shared<Cloud>();
   for (const auto& p : points) {
     Point q;
     q.getVector3fMap() = p;
     cloud->push_back(q);
   }
-  const pcl::IndicesPtr indices = detect_iss(cloud, config, resolution);
+  const pcl::IndicesPtr indices = detect_iss(cloud, config, unit);
   return std::vector<std::size_t>(indices->begin(), indices->end());
 }
 

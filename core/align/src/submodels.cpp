@@ -40,7 +40,7 @@ std::pair<int, double> spiral_key(int i, int j, int k, int nx, int ny, int nz) {
 }  // namespace
 
 std::vector<Block> make_submodels(const std::vector<Eigen::Vector3f>& points,
-                                  const SubmodelConfig& config, double resolution) {
+                                  const SubmodelConfig& config, double unit) {
   if (points.empty()) return {};
   if (!(config.block_overlap >= 0.0 && config.block_overlap < 0.95))
     throw std::invalid_argument("submodels.block_overlap must be in [0, 0.95)");
@@ -49,8 +49,8 @@ std::vector<Block> make_submodels(const std::vector<Eigen::Vector3f>& points,
     lo = lo.cwiseMin(p);
     hi = hi.cwiseMax(p);
   }
-  const auto size_xy = static_cast<float>(config.block_size * resolution);
-  const auto size_z = config.grid_3d ? static_cast<float>(config.block_height * resolution)
+  const auto size_xy = static_cast<float>(config.block_size * unit);
+  const auto size_z = config.grid_3d ? static_cast<float>(config.block_height * unit)
                                      : (hi.z() - lo.z()) + 1.0F;
   const auto keep = static_cast<float>(1.0 - config.block_overlap);
   const GridAxis ax = make_axis(lo.x(), hi.x(), size_xy, size_xy * keep);

@@ -1,7 +1,14 @@
 #pragma once
 /// Settings of every stage of the alignment pipeline (issue 3). Plain structs, one per stage.
-/// Lengths are multiples of the map resolution ("x res"), so the same defaults serve maps at
-/// 2 cm, 5 cm and 20 cm; absolute units are named where they are used.
+///
+/// Lengths come in three units, so that the same defaults serve maps at 2 cm, 5 cm and 20 cm:
+///  - "x res": the map resolution (validation and the last ICP iterations work at voxel level);
+///  - "x u": the feature unit u = max(scale.feature_unit, res / describe.voxel_size), i.e. a
+///    fixed metric length (5 cm by default) that grows with coarse maps only so far that the
+///    describe cloud keeps at least one voxel per leaf (keypoints, descriptors, matching,
+///    submodel blocks); the preprocess lengths use max(scale.feature_unit, res / preprocess.voxel_size);
+///  - "x max(u, res)": the refine search lengths (first ICP pair distance, crop margin, NDT).
+/// At 5 cm all three are the resolution. Absolute units are named where they are used.
 
 #include <cstddef>
 #include <limits>
@@ -9,6 +16,11 @@
 #include <string>
 
 namespace mapmerge::align {
+
+/// The metric scale of the features (see the units above).
+struct ScaleConfig {
+  double feature_unit = 0.05;  ///< u before flooring [m]; 0 = the map resolution (every length scales with it)
+};
 
 /// Stage 1: octree -> occupied points.
 struct ToPointsConfig {
@@ -24,20 +36,20 @@ struct PreprocessConfig {
   bool remove_ground = false;      ///< remove the dominant near-horizontal plane (the paper: ground has no features)
   double ground_distance = 1.5;    ///< plane inlier distance [x res]
   double ground_max_tilt_deg = 10.0;  ///< largest angle between plane normal and z for a ground plane [deg]
-  double voxel_size = 2.5;         ///< voxel-grid leaf of the cloud used by ICP [x res]
+  double voxel_size = 2.5;         ///< voxel-grid leaf of the cloud used by ICP [x u, at least 1 res]
   bool outlier_removal = true;     ///< statistical outlier removal on/off
   int outlier_mean_k = 8;          ///< neighbours for the statistical outlier removal [points]
   double outlier_stddev = 3.0;     ///< rejection threshold [standard deviations of the mean distance]
-  double normal_radius = 6.0;      ///< radius of the normal estimation [x res]
+  double normal_radius = 6.0;      ///< radius of the normal estimation [x u of the preprocess lengths]
   bool orient_normals_to_free = true;  ///< flip normals towards the octree's known free space
 };
 
 /// Stage 3: model extraction (submodels) from the source map.
 struct SubmodelConfig {
   bool enabled = false;          ///< true: divide the source into blocks (the paper's *_DIV); false: whole map
-  double block_size = 100.0;     ///< block edge in x and y [x res] (5 m at 5 cm; the paper: 3 m with denser keypoints)
+  double block_size = 100.0;     ///< block edge in x and y [x u] (5 m; the paper: 3 m with denser keypoints)
   bool grid_3d = false;          ///< divide along z as well (multi-level maps)
-  double block_height = 60.0;    ///< block edge in z when grid_3d [x res]
+  double block_height = 60.0;    ///< block edge in z when grid_3d [x u]
   double block_overlap = 0.5;    ///< share of a block shared with its neighbour [0..0.9]
   std::size_t min_keypoints = 8;   ///< blocks with fewer source keypoints are skipped [points]
   bool early_stop = true;        ///< stop launching blocks once a hypothesis is good enough
@@ -47,8 +59,8 @@ struct SubmodelConfig {
 
 /// Stage 4: ISS keypoints (Eq. 1-3).
 struct KeypointConfig {
-  double salient_radius = 10.0;   ///< support radius of the scatter matrix [x res]
-  double non_max_radius = 8.0;   ///< non-maximum suppression radius [x res]
+  double salient_radius = 10.0;   ///< support radius of the scatter matrix [x u]
+  double non_max_radius = 8.0;   ///< non-maximum suppression radius [x u]
   double gamma_21 = 0.975;       ///< upper bound on lambda2/lambda1 (largest first, PCL convention) [ratio]
   double gamma_32 = 0.975;       ///< upper bound on lambda3/lambda2 [ratio]
   int min_neighbors = 5;         ///< minimum support size [points]
@@ -59,10 +71,10 @@ enum class Descriptor { kFpfh, kShot };
 
 /// Stages 4-5 run on a coarser copy of the preprocessed cloud; stage 5: local descriptors.
 struct DescribeConfig {
-  double voxel_size = 4.0;       ///< voxel-grid leaf of the cloud keypoints and descriptors use [x res]
-  double normal_radius = 10.0;   ///< normal estimation radius on that cloud [x res]
+  double voxel_size = 4.0;       ///< voxel-grid leaf of the cloud keypoints and descriptors use [x u, at least 1 res]
+  double normal_radius = 10.0;   ///< normal estimation radius on that cloud [x u]
   Descriptor method = Descriptor::kFpfh;  ///< FPFH (33 bins) or SHOT (352 bins, the paper's)
-  double radius = 14.0;          ///< descriptor support radius [x res]
+  double radius = 14.0;          ///< descriptor support radius [x u]
   int threads = 1;               ///< OpenMP threads inside the descriptor estimation
 };
 
@@ -77,11 +89,11 @@ struct MatchConfig {
   std::size_t max_correspondences = 3000;  ///< cap, best descriptor distance first [count]
   int iterations = 20000;       ///< RANSAC / SAC-IA / prerejective iterations [count]
   double edge_similarity = 0.9;  ///< prerejection: edge-length ratio of sampled triangles [0..1]
-  double min_edge = 6.0;         ///< sampled keypoints at least this far apart [x res]
-  double inlier_distance = 5.0;  ///< correspondence inlier distance for hypothesis scoring [x res]
+  double min_edge = 6.0;         ///< sampled keypoints at least this far apart [x u]
+  double inlier_distance = 5.0;  ///< correspondence inlier distance for hypothesis scoring [x u]
   std::size_t min_consensus = 5;  ///< a hypothesis needs this many consistent correspondences [count]
   std::size_t max_hypotheses = 8;  ///< distinct hypotheses kept per submodel [count]
-  double gc_size = 4.0;          ///< GCC consensus set resolution [x res]
+  double gc_size = 4.0;          ///< GCC consensus set resolution [x u]
   int gc_threshold = 5;          ///< GCC minimum cluster size [correspondences]
 };
 
@@ -97,7 +109,7 @@ struct ValidateConfig {
   double conflict_weight = 5.0;  ///< ranking score = inliers - conflict_weight * contradictions [ratio]
   double ambiguity_ratio = 0.85;  ///< reject when a distinct hypothesis scores at least this share of the best [0..1]
   double distinct_rotation_deg = 5.0;  ///< hypotheses differing more than this are distinct [deg]
-  double distinct_translation = 10.0;  ///< ... or more than this [x res]
+  double distinct_translation = 10.0;  ///< ... or more than this [x u]
   std::size_t coarse_points = 1500;  ///< points per direction for the quick check of raw hypotheses (twice as many for the final check) [count]
   std::size_t refine_candidates = 3;  ///< best raw hypotheses refined and strictly validated [count]
   double refine_score_ratio = 0.4;  ///< raw hypotheses scoring below this share of the best are not refined [0..1]
@@ -110,19 +122,20 @@ struct RefineConfig {
   RefineMethod method = RefineMethod::kOicp;  ///< ICP, occupancy-weighted ICP, NDT, or none
   bool point_to_plane = true;    ///< ICP/OICP objective: point-to-plane (else point-to-point)
   int max_iterations = 30;       ///< ICP/NDT iterations [count]
-  double max_correspondence = 4.0;  ///< ICP pair distance, first iteration [x res]
+  double max_correspondence = 4.0;  ///< ICP pair distance, first iteration [x max(u, res)]
   double final_correspondence = 2.0;  ///< ICP pair distance reached by the last iterations [x res]
-  double crop_margin = 10.0;     ///< d_m: inflation of the source box when cropping the target [x res]
+  double crop_margin = 10.0;     ///< d_m: inflation of the source box when cropping the target [x max(u, res)]
   double convergence_translation = 0.05;  ///< stop when an update moves less than this [x res]
   double convergence_rotation_deg = 0.02;  ///< ... and rotates less than this [deg]
   std::size_t max_points = 3000;  ///< source points in the overlap used by ICP on each candidate [count]
   std::size_t final_points = 10000;  ///< ... by the final pass on the chosen transform (and by refine()) [count]
-  double ndt_resolution = 8.0;   ///< NDT cell size [x res]
-  double ndt_step = 4.0;         ///< NDT More-Thuente step size [x res]
+  double ndt_resolution = 8.0;   ///< NDT cell size [x max(u, res)]
+  double ndt_step = 4.0;         ///< NDT More-Thuente step size [x max(u, res)]
 };
 
 /// Every stage's settings. `load_align_config` reads it from YAML; `dump_*` write it.
 struct AlignConfig {
+  ScaleConfig scale;
   ToPointsConfig points;
   PreprocessConfig preprocess;
   SubmodelConfig submodels;
@@ -149,6 +162,15 @@ AlignConfig parse_align_config(const std::string& yaml_text);
 void check_align_config(const AlignConfig& config);
 std::string dump_align_config_yaml(const AlignConfig& config);
 std::string dump_align_config_json(const AlignConfig& config);
+
+/// The length units of a map (or pair) at resolution `res` [m] under `config` (see the top).
+struct LengthUnits {
+  double res = 0.0;         ///< "x res" [m]
+  double preprocess = 0.0;  ///< unit of preprocess.voxel_size and normal_radius [m]
+  double feature = 0.0;     ///< "x u" [m]
+  double refine = 0.0;      ///< "x max(u, res)" [m]
+};
+LengthUnits length_units(double res, const AlignConfig& config);
 
 const char* to_string(Descriptor d);
 const char* to_string(MatchMethod m);

@@ -30,13 +30,15 @@ struct Block {
 };
 
 /// Stage 3: blocks of `block_size` on a 2D (or 3D) grid over the points' bounding box, in
-/// spiral order from the border inwards. Empty blocks are dropped.
+/// spiral order from the border inwards. Empty blocks are dropped. `unit`: the feature unit
+/// u of the block lengths [m] (length_units(res, config).feature).
 std::vector<Block> make_submodels(const std::vector<Eigen::Vector3f>& points,
-                                  const SubmodelConfig& config, double resolution);
+                                  const SubmodelConfig& config, double unit);
 
-/// Stage 4 on a bare point set: indices of the ISS keypoints (Eq. 1-3).
+/// Stage 4 on a bare point set: indices of the ISS keypoints (Eq. 1-3); radii in units of
+/// `unit` [m].
 std::vector<std::size_t> iss_keypoints(const std::vector<Eigen::Vector3f>& points,
-                                       const KeypointConfig& config, double resolution);
+                                       const KeypointConfig& config, double unit);
 
 /// Eq. 6-8 on pair distances: mean of the distances <= d_th; +inf when fewer than n_th.
 struct Fitness {
