@@ -7,6 +7,8 @@
 #include <pcl/features/fpfh.h>
 #include <pcl/features/fpfh_omp.h>
 #include <pcl/features/normal_3d.h>
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
 #include <pcl/features/shot_omp.h>
 #include <pcl/filters/extract_indices.h>
 #include <pcl/filters/statistical_outlier_removal.h>
@@ -115,32 +117,35 @@ int free_votes(const octomap::OcTree& tree, const Point& p, float sign, double r
   return votes;
 }
 
-/// Normals of `cloud`; with `orient`, each faces the octree's free space (descriptors need a
-/// consistent sign; point-to-plane ICP does not).
-void estimate_normals(Cloud& cloud, const octomap::OcTree& tree, bool orient, double radius,
-                      double res) {
-  pcl::NormalEstimation<Point, pcl::Normal> ne;
-  ne.setInputCloud(std::shared_ptr<const Cloud>(&cloud, [](const Cloud*) {}));
-  ne.setRadiusSearch(radius);
-  pcl::PointCloud<pcl::Normal> normals;
-  ne.compute(normals);
-  for (std::size_t i = 0; i < cloud.size(); ++i) {
-    Point& p = cloud[i];
-    p.getNormalVector3fMap() = normals[i].getNormalVector3fMap();
-    p.curvature = normals[i].curvature;
-    if (!std::isfinite(p.normal_x)) {
-      p.normal_x = p.normal_y = 0.0F;
-      p.normal_z = 1.0F;
-      continue;
+/// Normals of `cloud` from its neighbours within `radius` (found with `search`, a kd-tree over
+/// `cloud`), in parallel blocks; with `orient`, each faces the octree's free space (descriptors
+/// need a consistent sign; point-to-plane ICP does not).
+void estimate_normals(Cloud& cloud, const pcl::KdTreeFLANN<Point>& search, const octomap::OcTree& tree,
+                      bool orient, double radius, double res) {
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, cloud.size(), 512), [&](const auto& r) {
+    pcl::Indices idx;
+    std::vector<float> d2;
+    for (std::size_t i = r.begin(); i < r.end(); ++i) {
+      Point& p = cloud[i];
+      Eigen::Vector4f plane;
+      float curvature = 0.0F;
+      if (search.radiusSearch(p, radius, idx, d2) < 3 ||
+          !pcl::computePointNormal(cloud, idx, plane, curvature)) {
+        p.normal_x = p.normal_y = 0.0F;
+        p.normal_z = 1.0F;
+        p.curvature = 0.0F;
+        continue;
+      }
+      p.getNormalVector3fMap() = plane.head<3>();
+      p.curvature = curvature;
+      const int plus = orient ? free_votes(tree, p, 1.0F, res) : 0;
+      const int minus = orient ? free_votes(tree, p, -1.0F, res) : 0;
+      const bool flip = minus > plus || (minus == plus && p.normal_z < 0.0F);
+      if (flip) p.getNormalVector3fMap() *= -1.0F;
     }
-    const int plus = orient ? free_votes(tree, p, 1.0F, res) : 0;
-    const int minus = orient ? free_votes(tree, p, -1.0F, res) : 0;
-    const bool flip = minus > plus || (minus == plus && p.normal_z < 0.0F);
-    if (flip) p.getNormalVector3fMap() *= -1.0F;
-  }
+  });
 }
 
-/// ISS keypoints; radii in units of `unit` [m].
 pcl::IndicesPtr detect_iss(const Cloud::ConstPtr& cloud, const KeypointConfig& c, double unit) {
   pcl::ISSKeypoint3D<Point, Point, Point> iss;
   iss.setInputCloud(cloud);
@@ -265,12 +270,14 @@ PreparedMap prepare_map(std::shared_ptr<const octomap::OcTree> shared, const Ali
   const LengthUnits units = length_units(m->resolution, config);
   m->cloud = preprocess(m->full, config.preprocess, units);
   if (m->cloud->size() < 10) throw std::invalid_argument("map has fewer than 10 points after preprocessing");
-  estimate_normals(*m->cloud, tree, false, config.preprocess.normal_radius * units.preprocess,
-                   m->resolution);
   m->cloud_tree = std::make_shared<pcl::KdTreeFLANN<Point>>();
   m->cloud_tree->setInputCloud(m->cloud);
+  estimate_normals(*m->cloud, *m->cloud_tree, tree, false,
+                   config.preprocess.normal_radius * units.preprocess, m->resolution);
   m->coarse = voxel_grid(m->cloud, config.describe.voxel_size * units.feature);
-  estimate_normals(*m->coarse, tree, config.preprocess.orient_normals_to_free,
+  pcl::KdTreeFLANN<Point> coarse_tree;
+  coarse_tree.setInputCloud(m->coarse);
+  estimate_normals(*m->coarse, coarse_tree, tree, config.preprocess.orient_normals_to_free,
                    config.describe.normal_radius * units.feature, m->resolution);
   m->timings.preprocess_ms = ms_since(t0);
 
