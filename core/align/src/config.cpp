@@ -61,6 +61,7 @@ void for_each_field(Config& c, F&& f) {
   f("match", "mutual", m.mutual);
   f("match", "max_correspondences", m.max_correspondences);
   f("match", "iterations", m.iterations);
+  f("match", "seed_pairs", m.seed_pairs);
   f("match", "edge_similarity", m.edge_similarity);
   f("match", "min_edge", m.min_edge);
   f("match", "inlier_distance", m.inlier_distance);

@@ -1,5 +1,6 @@
 // Stage 6: descriptor correspondences and global hypotheses (PCL translation unit 2 of 3).
 #include <algorithm>
+#include <cstdint>
 #include <random>
 
 #include <Eigen/Geometry>
@@ -99,6 +100,51 @@ void keep_best(std::vector<Hypothesis>& best, Hypothesis h, std::size_t max, dou
   if (best.size() > max) best.resize(max);
 }
 
+/// Deterministic seeds from second-order compatibility: the correct correspondences are all
+/// compatible with each other, so a pair of correct ones shares every other correct one as a
+/// common compatible partner, while a chance pair shares only a few. The `count` pairs with the
+/// most common partners each give one hypothesis per common partner (a triple), scored by
+/// consensus like the RANSAC samples. Finds the true transform when only ~5-10 of thousands of
+/// correspondences are correct, where uniform sampling rarely draws three of them.
+template <class Keep>
+void seed_from_common_partners(const Pairs& p, const std::vector<std::vector<int>>& compatible,
+                               double tol, const MatchConfig& c, Keep&& keep) {
+  const std::size_t m = p.src.size(), words = (m + 63) / 64;
+  if (c.seed_pairs == 0) return;
+  std::vector<std::uint64_t> bits(m * words, 0);
+  for (std::size_t i = 0; i < m; ++i)
+    for (int j : compatible[i]) bits[i * words + static_cast<std::size_t>(j) / 64] |= 1ULL << (j % 64);
+  struct Edge {
+    int common, i, j;
+  };
+  std::vector<Edge> edges;
+  for (std::size_t i = 0; i < m; ++i)
+    for (int j : compatible[i]) {
+      if (static_cast<std::size_t>(j) <= i) continue;
+      int common = 0;
+      for (std::size_t w = 0; w < words; ++w)
+        common += __builtin_popcountll(bits[i * words + w] & bits[static_cast<std::size_t>(j) * words + w]);
+      if (common >= 1) edges.push_back({common, static_cast<int>(i), j});
+    }
+  const std::size_t n = std::min(edges.size(), c.seed_pairs);
+  std::partial_sort(edges.begin(), edges.begin() + static_cast<std::ptrdiff_t>(n), edges.end(),
+                    [](const Edge& a, const Edge& b) { return a.common > b.common; });
+  for (std::size_t e = 0; e < n; ++e) {
+    const auto a = static_cast<std::size_t>(edges[e].i), b = static_cast<std::size_t>(edges[e].j);
+    for (std::size_t w = 0; w < words; ++w) {
+      std::uint64_t both = bits[a * words + w] & bits[b * words + w];
+      while (both != 0) {
+        const int k = static_cast<int>(w * 64) + __builtin_ctzll(both);
+        both &= both - 1;
+        std::vector<int> inliers = consensus_of(p, fit(p, {edges[e].i, edges[e].j, k}), tol);
+        if (inliers.size() < c.min_consensus) continue;
+        const Eigen::Matrix4d T_ls = fit(p, inliers);
+        keep(T_ls, consensus_of(p, T_ls, tol).size());
+      }
+    }
+  }
+}
+
 /// RANSAC guided by pairwise length consistency: a seed correspondence and two partners that
 /// preserve distances to it (and to each other) are drawn; prerejection by edge similarity.
 std::vector<Hypothesis> ransac(const Pairs& p, const AlignConfig& cfg, double res, unsigned seed) {
@@ -121,11 +167,14 @@ std::vector<Hypothesis> ransac(const Pairs& p, const AlignConfig& cfg, double re
   std::vector<double> weight(m);
   for (std::size_t i = 0; i < m; ++i) weight[i] = static_cast<double>(compatible[i].size());
   if (*std::max_element(weight.begin(), weight.end()) < 2.0) return {};
-  std::mt19937 rng(seed);
-  std::discrete_distribution<std::size_t> pick_seed(weight.begin(), weight.end());
   std::vector<Hypothesis> best;
   const double rot = cfg.validate.distinct_rotation_deg;
   const double trans = cfg.validate.distinct_translation * res;
+  seed_from_common_partners(p, compatible, tol, c, [&](const Eigen::Matrix4d& T, std::size_t n) {
+    keep_best(best, {T, n, -1}, c.max_hypotheses, rot, trans);
+  });
+  std::mt19937 rng(seed);
+  std::discrete_distribution<std::size_t> pick_seed(weight.begin(), weight.end());
   for (int it = 0; it < c.iterations; ++it) {
     const std::size_t a = pick_seed(rng);
     const auto& na = compatible[a];

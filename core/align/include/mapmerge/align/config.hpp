@@ -88,6 +88,7 @@ struct MatchConfig {
   bool mutual = false;           ///< keep only mutual nearest neighbours (then k_nearest = 1)
   std::size_t max_correspondences = 3000;  ///< cap, best descriptor distance first [count]
   int iterations = 20000;       ///< RANSAC / SAC-IA / prerejective iterations [count]
+  std::size_t seed_pairs = 64;  ///< kRansac: correspondence pairs with the most common compatible partners that seed hypotheses deterministically before the random draws (0 = off) [count]
   double edge_similarity = 0.9;  ///< prerejection: edge-length ratio of sampled triangles [0..1]
   double min_edge = 6.0;         ///< sampled keypoints at least this far apart [x u]
   double inlier_distance = 5.0;  ///< correspondence inlier distance for hypothesis scoring [x u]
