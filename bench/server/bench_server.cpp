@@ -31,6 +31,7 @@ struct Options {
   int timeout_s = 900;
   double strip_share = 0.45;  ///< each robot sees this share of the map's length
   double grow = 1.0;          ///< an incremental update grows a robot's map by this much [m]
+  std::string log_level = "info";  ///< the server's
 };
 
 struct Result {
@@ -70,7 +71,8 @@ std::map<std::string, std::vector<double>> incremental_stages(const std::string&
 
 double secs(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
 
-/// Robot i's map and the same map grown by `grow` m along x (its next update), same frame.
+/// Robot i's map and the same map grown by `grow` m at both ends along x (its next update; the
+/// fleet's end robots grow inwards), same frame.
 struct BenchRobot {
   mt::RobotMap map, grown;
 };
@@ -84,7 +86,7 @@ std::vector<BenchRobot> make_robots(const octomap::OcTree& world, int n, double 
   std::vector<BenchRobot> robots;
   for (int i = 0; i < n; ++i) {
     auto box = [&](double extra) {
-      return Eigen::AlignedBox3d(Eigen::Vector3d(x0 + i * step, y0, z0), Eigen::Vector3d(x0 + i * step + length + extra, y1, z1));
+      return Eigen::AlignedBox3d(Eigen::Vector3d(x0 + i * step - extra, y0, z0), Eigen::Vector3d(x0 + i * step + length + extra, y1, z1));
     };
     const Eigen::Matrix4d T = i == 0 ? Eigen::Matrix4d::Identity()
                                      : mapmerge::paper_transform(off(rng), off(rng), 0, tilt(rng), tilt(rng), yaw(rng));
@@ -177,7 +179,7 @@ Result run(const Options& o, int n) {
   const std::string dir = mt::temp_dir("bench_" + std::to_string(n));
   std::ofstream(dir + "/bench.yaml") << "publish: {min_interval_s: 0.0}\nmerge: {threads: 2}\n";
   mt::ServerProcess server({"--domain", std::to_string(o.domain), "--profile", "local", "--state-dir", dir + "/state", "--config",
-                            dir + "/bench.yaml", "--reference", "r1", "--log-level", "info"},
+                            dir + "/bench.yaml", "--reference", "r1", "--log-level", o.log_level},
                            dir + "/server.log");
   mt::FleetListener op(o.domain);
   std::vector<std::unique_ptr<mt::RobotPublisher>> pubs;
@@ -213,6 +215,7 @@ int main(int argc, char** argv) {
   app.add_option("--updates", o.updates, "incremental updates measured per fleet size");
   app.add_option("--timeout", o.timeout_s, "seconds to wait for the whole fleet to be merged");
   app.add_option("--strip-share", o.strip_share, "share of the map's length each robot sees");
+  app.add_option("--log-level", o.log_level, "the server's log level");
   app.add_option("--grow", o.grow, "an incremental update grows the robot's map by this much [m]");
   CLI11_PARSE(app, argc, argv);
   std::printf("map %s; columns: robots | aligned | first global [s] | all merged [s] | incremental updates measured, "

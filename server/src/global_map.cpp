@@ -29,6 +29,17 @@ double global_resolution(const Registry& registry, const ServerConfig& config, c
   return res;
 }
 
+/// How far [m] a point of `box` (robot frame) lands apart under T_global_robot `a` and `b`.
+double max_displacement(const Eigen::Matrix4d& a, const Eigen::Matrix4d& b, const Eigen::AlignedBox3d& box) {
+  const Eigen::Matrix4d d = b - a;  // affine in the point: its largest norm is at a corner
+  double worst = 0.0;
+  for (int i = 0; i < 8; ++i) {
+    const Eigen::Vector3d p = box.corner(static_cast<Eigen::AlignedBox3d::CornerType>(i));
+    worst = std::max(worst, (d.topLeftCorner<3, 3>() * p + d.topRightCorner<3, 1>()).norm());
+  }
+  return worst;
+}
+
 }  // namespace
 
 std::vector<PlacedMap> GlobalMapBuilder::placed_maps(const Registry& registry,
@@ -39,14 +50,26 @@ std::vector<PlacedMap> GlobalMapBuilder::placed_maps(const Registry& registry,
     if (!rec || !rec->tree) continue;
     Eigen::Matrix4d T = pose.T_global_robot;
     const auto fused = fusion_ ? fusion_->pose_of(robot) : std::nullopt;
-    if (fused && !moved_noticeably(*fused, T, config_.merge.refine_republish_translation,
-                                   config_.merge.refine_republish_rotation_deg)) {
-      T = *fused;
+    if (fused && max_displacement(*fused, T, extent(robot, rec->tree)) < 0.5 * fusion_->resolution()) {
+      T = *fused;  // no voxel of the map would move by half a voxel: keep what is fused
     }
     maps.push_back(PlacedMap{robot, rec->tree, T});
     contributors.push_back(Contribution{robot, rec->session_id, rec->sequence});
   }
   return maps;
+}
+
+const Eigen::AlignedBox3d& GlobalMapBuilder::extent(const std::string& robot,
+                                                    const std::shared_ptr<const octomap::OcTree>& tree) {
+  auto& [map, box] = extents_[robot];
+  if (map.lock() != tree) {
+    double x0, y0, z0, x1, y1, z1;
+    tree->getMetricMin(x0, y0, z0);
+    tree->getMetricMax(x1, y1, z1);
+    box = Eigen::AlignedBox3d(Eigen::Vector3d(x0, y0, z0), Eigen::Vector3d(x1, y1, z1));
+    map = tree;
+  }
+  return box;
 }
 
 std::optional<GlobalMapOut> GlobalMapBuilder::build(const Registry& registry, std::uint64_t version) {

@@ -11,6 +11,7 @@
 #include <CLI/CLI.hpp>
 #include <spdlog/spdlog.h>
 
+#include "mapmerge/server/export.hpp"
 #include "mapmerge/server/server.hpp"
 #include "mapmerge/wire/fastdds.hpp"
 
@@ -22,6 +23,7 @@ enum ExitCode { kOk = 0, kRuntimeError = 1, kUsageError = 2, kStoreError = 3 };
 
 struct Flags {
   std::string config_file, state_dir, profile, reference, discovery_server, keystore, enclave, log_level = "info";
+  std::string export_prefix;
   int domain = -1;
   int threads = 0;
 };
@@ -54,6 +56,21 @@ std::thread signal_thread(mapmerge::server::Server& server, sigset_t set) {
   });
 }
 
+int run_export(const ServerConfig& config, const std::string& prefix) {
+  try {
+    const auto e = mapmerge::server::export_global(config, prefix);
+    std::cout << "global map " << e.version << ": " << prefix << ".bt, provenance of " << e.robots << " robots ("
+              << e.owned_voxels << " voxels) in " << prefix << ".prov\n";
+    return kOk;
+  } catch (const mapmerge::server::StoreError& e) {
+    std::cerr << "mapmerge-server: state store: " << e.what() << "\n";
+    return kStoreError;
+  } catch (const std::exception& e) {
+    std::cerr << "mapmerge-server: " << e.what() << "\n";
+    return kRuntimeError;
+  }
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -73,6 +90,10 @@ int main(int argc, char** argv) {
   app.add_option("--enclave", f.enclave, "the server's enclave in the keystore (default: mapmerge_server)");
   app.add_option("--threads", f.threads, "merge worker threads")->check(CLI::Range(1, 256));
   app.add_option("--log-level", f.log_level, "trace, debug, info, warn, error");
+  app.add_option("--export-global", f.export_prefix,
+                 "write the last global map of --state-dir as PREFIX.bt and its per-robot provenance as "
+                 "PREFIX.prov (for `mapmerge render PREFIX.bt --by-robot PREFIX.prov`), then exit")
+      ->needs("--state-dir");
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -92,6 +113,7 @@ int main(int argc, char** argv) {
     std::cerr << "mapmerge-server: " << e.what() << "\n";
     return kUsageError;
   }
+  if (!f.export_prefix.empty()) return run_export(config, f.export_prefix);
   sigset_t set;
   sigemptyset(&set);
   sigaddset(&set, SIGINT);

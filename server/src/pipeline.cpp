@@ -35,6 +35,11 @@ Pipeline::Pipeline(const ServerConfig& config, Registry& registry, Store* store,
     : config_(config), registry_(registry), store_(store), hooks_(std::move(hooks)) {}
 
 void Pipeline::process(const std::string& robot, std::optional<MapSample> map, bool retry) {
+  const std::string suffix = refine_job("");
+  if (robot.size() > suffix.size() && robot.compare(robot.size() - suffix.size(), suffix.size(), suffix) == 0) {
+    refine_turn(robot.substr(0, robot.size() - suffix.size()));
+    return;
+  }
   if (map && registry_.touch_if_unchanged(robot, map->session_id, map->sequence, content_hash(*map),
                                           map->received_unix)) {
     // The same map again (a periodic republish): only partners whose maps changed since are
@@ -114,18 +119,32 @@ void Pipeline::place(const std::string& robot) {
     // A growing map keeps its frame: fuse it at once with the known transform, then polish the
     // transform locally and republish only if that moved the robot noticeably.
     if (hooks_.changed) hooks_.changed();
-    if (config_.merge.refine_known && refine_known(*rec)) on_new_alignment(robot, false);
+    if (!config_.merge.refine_known) return;
+    if (hooks_.refine) {
+      hooks_.refine(refine_job(robot));
+    } else if (refine_known(*rec)) {
+      on_new_alignment(robot, false);
+    }
     return;
   }
   search_unknown(*rec);
 }
 
-std::shared_ptr<const align::PreparedMap> Pipeline::prepared(const std::string& robot) {
+void Pipeline::refine_turn(const std::string& robot) {
+  const auto rec = registry_.get(robot);  // the latest map: earlier ones need no refinement
+  if (!rec || !rec->tree || registry_.poses().count(robot) == 0 || robot == registry_.reference()) return;
+  if (refine_known(*rec)) on_new_alignment(robot, false);
+}
+
+std::shared_ptr<const align::PreparedMap> Pipeline::prepared(const std::string& robot, bool features) {
   const auto rec = registry_.get(robot);
   if (!rec || !rec->tree) return nullptr;
-  if (rec->prepared) return rec->prepared;
+  if (rec->prepared && (!features || rec->prepared->has_features())) return rec->prepared;
   std::string error;
-  auto p = prepare(rec->tree, config_.align, error);
+  const auto t0 = std::chrono::steady_clock::now();
+  auto p = prepare(rec->tree, config_.align, features, error);
+  spdlog::debug("robot {}: map prepared ({}) in {:.0f} ms", robot, features ? "features" : "refine only",
+                seconds_since(t0) * 1e3);
   if (!p) {
     spdlog::warn("robot {}: map cannot be aligned: {}", robot, error);
     return nullptr;
@@ -135,7 +154,7 @@ std::shared_ptr<const align::PreparedMap> Pipeline::prepared(const std::string& 
 }
 
 void Pipeline::search_unknown(const RobotRecord& rec) {
-  const auto me = prepared(rec.robot_id);
+  const auto me = prepared(rec.robot_id, true);
   if (!me) return;
   std::vector<std::shared_ptr<const RobotRecord>> candidates;
   for (const auto& [id, pose] : registry_.poses()) {
@@ -146,7 +165,7 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
             [](const auto& a, const auto& b) { return a->tree->size() > b->tree->size(); });
   for (const auto& other : candidates) {
     if (hooks_.cancelled && hooks_.cancelled()) return;
-    const auto target = prepared(other->robot_id);
+    const auto target = prepared(other->robot_id, true);
     if (!target) continue;
     spdlog::info("merge {} <- {}: global search started", other->robot_id, rec.robot_id);
     const auto t0 = std::chrono::steady_clock::now();
@@ -162,14 +181,14 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
 }
 
 bool Pipeline::refine_known(const RobotRecord& rec) {
-  const auto me = prepared(rec.robot_id);
+  const auto me = prepared(rec.robot_id, false);
   if (!me) return false;
   bool moved = false;
   // The robot's own links to the group: edges where its map is the source. Edges of robots
   // aligned to it keep their transform (a growing map does not move its frame).
   for (const Edge& e : registry_.edges_of(rec.robot_id)) {
     if (e.source != rec.robot_id) continue;
-    const auto target = prepared(e.target);
+    const auto target = prepared(e.target, false);
     if (!target) continue;
     const auto t0 = std::chrono::steady_clock::now();
     const align::AlignResult res = align_local(*target, *me, e.T_target_source, config_.align);

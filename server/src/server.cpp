@@ -23,6 +23,7 @@ Server::Server(ServerConfig config) : config_(std::move(config)) {
     cv_.notify_all();
   };
   hooks.cancelled = [this] { return stopping_.load(); };
+  hooks.refine = [this](const std::string& job) { scheduler_->retry(job); };
   pipeline_ = std::make_unique<Pipeline>(config_, registry_, store_.get(), hooks);
   restore();
   scheduler_ = std::make_unique<Scheduler>(config_.merge.threads,

@@ -152,6 +152,28 @@ TEST(AlignPipeline, RefineFromAKnownTransformAndValidate) {
   }
 }
 
+TEST(AlignPipeline, RefineOnlyPreparationRefinesAlikeAndIsRefusedByTheGlobalSearch) {
+  const Pair p = make_pair(fr079(), box(-10, -10, 0, 2, 10, 2), box(-4, -10, 0, 8, 10, 2),
+                           mapmerge::paper_transform(-3, 2, 0.2, 1, -1, -35));
+  const ma::AlignConfig c;
+  const ma::PreparedMap full_target = ma::prepare_map(p.target, c);
+  const ma::PreparedMap full_source = ma::prepare_map(p.source, c);
+  const ma::PreparedMap target = ma::prepare_for_refine(p.target, c);
+  const ma::PreparedMap source = ma::prepare_for_refine(p.source, c);
+  EXPECT_TRUE(full_source.has_features());
+  EXPECT_FALSE(source.has_features());
+  EXPECT_EQ(source.num_keypoints(), 0u);
+  EXPECT_EQ(source.num_filtered(), full_source.num_filtered());
+  const Eigen::Matrix4d T0 = mapmerge::paper_transform(0.2, -0.15, 0.0, 0, 0, 3) * p.T_true;
+  const ma::AlignResult light = ma::refine(target, source, T0, c);
+  const ma::AlignResult full = ma::refine(full_target, full_source, T0, c);
+  ASSERT_TRUE(light.accepted) << light.reason;
+  EXPECT_TRUE(light.T_target_source.isApprox(full.T_target_source, 1e-9));  // the same stages
+  const ma::AlignResult refused = ma::align(target, full_source, c);
+  EXPECT_FALSE(refused.accepted);
+  EXPECT_NE(refused.reason.find("without features"), std::string::npos) << refused.reason;
+}
+
 TEST(AlignPipeline, EmptyMapIsAClearError) {
   const octomap::OcTree empty(0.05);
   EXPECT_THROW(ma::prepare_map(empty, ma::AlignConfig{}), std::invalid_argument);

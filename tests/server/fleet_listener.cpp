@@ -41,6 +41,7 @@ struct FleetListener::Impl {
     status.global_version = s.global_version();
     for (const auto& r : s.robots()) {
       status.accepted[r.robot_id()] = r.updates_accepted();
+      status.sequence[r.robot_id()] = r.sequence_number();
       status.rejected[r.robot_id()] = r.updates_rejected();
       status.last_error[r.robot_id()] = r.last_error();
     }

@@ -12,7 +12,9 @@
 #include "fleet.hpp"
 #include "server_process.hpp"
 #include "mapmerge/map/crop.hpp"
+#include "mapmerge/map/map_io.hpp"
 #include "mapmerge/server/config.hpp"
+#include "mapmerge/server/export.hpp"
 #include "mapmerge/server/global_map.hpp"
 #include "mapmerge/server/merge_ops.hpp"
 #include "mapmerge/server/pose_graph.hpp"
@@ -362,6 +364,58 @@ TEST(GlobalMapBuilder, AGrownMapIsFusedByItsDifferenceAndEqualsAFreshBuild) {
   ASSERT_EQ(p.robots.size(), 2u);
   EXPECT_EQ(p.robots[1].name, "r2");
   EXPECT_GT(p.owner.size(), 10000u);
+}
+
+TEST(ExportGlobal, WritesTheLastGlobalMapAndWhichRobotContributedEachVoxel) {
+  const auto world = test::load_data_map("geb079.bt");
+  const Eigen::Matrix4d T2 = mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155);
+  const std::vector<test::RobotMap> robots{test::cut_robot_map(*world, "r1", box(-8, 12), Eigen::Matrix4d::Identity()),
+                                           test::cut_robot_map(*world, "r2", box(4, 24), T2)};
+  ServerConfig config;
+  config.store.state_dir = test::temp_dir("export_unit");
+  Registry registry;
+  registry.claim_reference("r1");
+  {
+    Store store(config.store);
+    for (const auto& r : robots) {
+      MapSample m;
+      m.robot_id = m.topic_robot = r.id;
+      m.session_id = "s1";
+      m.sequence = 1;
+      m.encoding = "octomap-bt";
+      m.data = encode_map(*r.tree, Encoding::kOctomapBt);
+      store.save_map(m);
+      registry.put_map(record_of(r, 1));
+    }
+    registry.put_edge(Edge{"r1", "r2", T2.inverse(), 0.02});
+    const auto g = GlobalMapBuilder(config).build(registry, 5);
+    ASSERT_TRUE(g);
+    store.save_global(*g, pose_outputs(registry));
+  }
+  const std::string prefix = config.store.state_dir + "/global";
+  const ExportedGlobal e = export_global(config, prefix);
+  EXPECT_EQ(e.version, 5u);
+  EXPECT_EQ(e.robots, 2u);
+  const auto map = read_octree_file(prefix + ".bt");
+  const Provenance p = read_provenance(prefix + ".prov");
+  ASSERT_EQ(p.robots.size(), 2u);
+  EXPECT_EQ(p.robots[0].name, "r1");
+  EXPECT_EQ(p.robots[1].name, "r2");
+  EXPECT_TRUE(p.robots[1].T_global_robot.isApprox(T2.inverse(), 1e-6));  // the published pose
+  EXPECT_DOUBLE_EQ(p.resolution, map->getResolution());
+  std::size_t by[2] = {0, 0};
+  for (const auto& [key, owner] : p.owner) {
+    ASSERT_LT(owner.robot, 2u);
+    ++by[owner.robot];
+    const octomap::OcTreeNode* n = map->search(key);
+    ASSERT_NE(n, nullptr);  // provenance lies on the exported map's grid
+  }
+  EXPECT_GT(by[0], 10000u);
+  EXPECT_GT(by[1], 10000u);
+  // A store without a global map is an error, not an empty export.
+  ServerConfig empty;
+  empty.store.state_dir = test::temp_dir("export_empty");
+  EXPECT_THROW(export_global(empty, empty.store.state_dir + "/global"), StoreError);
 }
 
 TEST(ServerExitCodes, UsageAndStoreErrorsAreDistinct) {

@@ -463,6 +463,7 @@ AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
     result.timings.total_ms = ms_since(t_all);
     return result;
   };
+  if (!source.keypoints || !target.keypoints) return finish("a map was prepared without features (prepare_for_refine)");
   if (source.keypoints->size() < 3 || target.keypoints->size() < 3)
     return finish("too few keypoints (target " + std::to_string(target.keypoints->size()) +
                   ", source " + std::to_string(source.keypoints->size()) + ")");

@@ -233,18 +233,31 @@ PreparedMap::PreparedMap(std::shared_ptr<const Impl> impl) : impl_(std::move(imp
 double PreparedMap::resolution() const { return impl().resolution; }
 std::size_t PreparedMap::num_points() const { return impl().num_points; }
 std::size_t PreparedMap::num_filtered() const { return impl().cloud->size(); }
-std::size_t PreparedMap::num_keypoints() const { return impl().keypoints->size(); }
+std::size_t PreparedMap::num_keypoints() const { return impl().keypoints ? impl().keypoints->size() : 0; }
+bool PreparedMap::has_features() const { return impl_ && impl_->keypoints != nullptr; }
 const StageTimings& PreparedMap::timings() const { return impl().timings; }
 const PreparedMap::Impl& PreparedMap::impl() const {
   if (!impl_) throw std::logic_error("PreparedMap is empty (use prepare_map)");
   return *impl_;
 }
 
+/// Stages 1-2, and 4-5 when `features`.
+static PreparedMap prepare_stages(std::shared_ptr<const octomap::OcTree> shared, const AlignConfig& config,
+                                  bool features);
+
 PreparedMap prepare_map(const octomap::OcTree& tree, const AlignConfig& config) {
   return prepare_map(std::make_shared<const octomap::OcTree>(tree), config);
 }
 
 PreparedMap prepare_map(std::shared_ptr<const octomap::OcTree> shared, const AlignConfig& config) {
+  return prepare_stages(std::move(shared), config, true);
+}
+
+PreparedMap prepare_for_refine(std::shared_ptr<const octomap::OcTree> shared, const AlignConfig& config) {
+  return prepare_stages(std::move(shared), config, false);
+}
+
+PreparedMap prepare_stages(std::shared_ptr<const octomap::OcTree> shared, const AlignConfig& config, bool features) {
   if (!shared) throw std::invalid_argument("prepare_map: no tree");
   // PCL prints per-point warnings (degenerate ISS scatter, invalid SHOT frames) that the
   // pipeline already handles by dropping those points; results carry what matters.
@@ -274,6 +287,11 @@ PreparedMap prepare_map(std::shared_ptr<const octomap::OcTree> shared, const Ali
   m->cloud_tree->setInputCloud(m->cloud);
   estimate_normals(*m->cloud, *m->cloud_tree, tree, false,
                    config.preprocess.normal_radius * units.preprocess, m->resolution);
+  if (!features) {  // stages 1-2 only: what refine() and validate() read
+    m->timings.preprocess_ms = ms_since(t0);
+    m->timings.total_ms = ms_since(t_start);
+    return PreparedMap(std::move(m));
+  }
   m->coarse = voxel_grid(m->cloud, config.describe.voxel_size * units.feature);
   pcl::KdTreeFLANN<Point> coarse_tree;
   coarse_tree.setInputCloud(m->coarse);

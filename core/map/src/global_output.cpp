@@ -1,10 +1,12 @@
 // GlobalFusion's outputs: the `.bt` payload (one pass that also prunes the sums), an OcTree of
 // clamped log-odds, and provenance.
 #include <algorithm>
+#include <cmath>
 #include <sstream>
 
 #include "leaf_mapper.hpp"
 #include "mapmerge/map/global_fusion.hpp"
+#include "mapmerge/map/map_io.hpp"
 #include "sum_tree.hpp"
 #include "tree_writer.hpp"
 
@@ -144,31 +146,38 @@ std::unique_ptr<octomap::OcTree> GlobalFusion::tree() const {
   return tree;
 }
 
-Provenance GlobalFusion::provenance() const {
+Provenance provenance_of(const std::vector<NamedMap>& maps, double resolution) {
+  if (!(resolution > 0.0) || !std::isfinite(resolution)) throw MapError("provenance_of: resolution must be positive");
   Provenance p;
-  p.resolution = resolution_;
-  for (const auto& [robot, entry] : robots_) {
+  p.resolution = resolution;
+  const octomap::OcTree grid(resolution);  // key arithmetic of the global grid
+  for (const NamedMap& named : maps) {
     const auto index = static_cast<std::uint16_t>(p.robots.size());
-    p.robots.push_back(RobotFrame{robot, entry.T_global_robot});
+    p.robots.push_back(RobotFrame{named.name, named.T_global_map});
+    if (named.map == nullptr || !detail::check_rigid(named.T_global_map, 1e-6).empty()) continue;  // no votes
     VoteSink sink{p, index};
     FuseResult counts;
-    detail::LeafMapper<VoteSink, float> mapper(entry.T_global_robot, resolution_, sink, counts);
-    const octomap::OcTree& map = *entry.map;
-    for (auto it = map.begin_leafs(), end = map.end_leafs(); it != end; ++it) {
+    detail::LeafMapper<VoteSink, float> mapper(named.T_global_map, resolution, sink, counts);
+    for (auto it = named.map->begin_leafs(), end = named.map->end_leafs(); it != end; ++it) {
       const float v = it->getLogOdds();
       if (v <= 0.0F) continue;
       const Eigen::Vector3d c(it.getX(), it.getY(), it.getZ());
-      if (it.getSize() >= resolution_ * (1 - 1e-9)) {
+      if (it.getSize() >= resolution * (1 - 1e-9)) {
         mapper.add_cube(c, it.getSize(), v);
         continue;
       }
-      const Eigen::Vector3d ct = entry.T_global_robot.topLeftCorner<3, 3>() * c +
-                                 entry.T_global_robot.topRightCorner<3, 1>();
+      const Eigen::Vector3d ct = named.T_global_map.topLeftCorner<3, 3>() * c + named.T_global_map.topRightCorner<3, 1>();
       octomap::OcTreeKey key;
-      if (sums_->coordToKeyChecked(ct.x(), ct.y(), ct.z(), key)) p.vote(key, index, v);
+      if (grid.coordToKeyChecked(ct.x(), ct.y(), ct.z(), key)) p.vote(key, index, v);
     }
   }
   return p;
+}
+
+Provenance GlobalFusion::provenance() const {
+  std::vector<NamedMap> maps;
+  for (const auto& [robot, entry] : robots_) maps.push_back(NamedMap{robot, entry.map.get(), entry.T_global_robot});
+  return provenance_of(maps, resolution_);
 }
 
 }  // namespace mapmerge

@@ -3,9 +3,12 @@
 /// robot, and one pose per robot (aligned ones with T_global_robot, the others unknown).
 
 #include <cstdint>
+#include <map>
 #include <memory>
 #include <optional>
 #include <vector>
+
+#include <Eigen/Geometry>
 
 #include "mapmerge/map/global_fusion.hpp"
 #include "mapmerge/server/config.hpp"
@@ -22,8 +25,8 @@ class GlobalMapBuilder {
   explicit GlobalMapBuilder(const ServerConfig& config) : config_(config) {}
 
   /// The global map of every aligned robot (nothing when no robot is aligned). A robot whose pose
-  /// moved less than merge.refine_republish_translation / _rotation_deg since it was fused keeps
-  /// its fused pose (a pose-graph wobble does not re-fuse its whole map).
+  /// moved so little since it was fused that no point of its map moves by half a global voxel
+  /// keeps its fused pose (a refinement's or the pose graph's wobble does not re-fuse its map).
   std::optional<GlobalMapOut> build(const Registry& registry, std::uint64_t version);
 
   /// Which robot contributed each occupied voxel of the last built map, with every robot's frame.
@@ -44,7 +47,9 @@ class GlobalMapBuilder {
   std::vector<PlacedMap> placed_maps(const Registry& registry, std::vector<Contribution>& contributors);
   const ServerConfig& config_;
   std::unique_ptr<GlobalFusion> fusion_;
+  const Eigen::AlignedBox3d& extent(const std::string& robot, const std::shared_ptr<const octomap::OcTree>& tree);
   RefusedMaps refused_;
+  std::map<std::string, std::pair<std::weak_ptr<const octomap::OcTree>, Eigen::AlignedBox3d>> extents_;  ///< per robot
   Stages stages_;
 };
 

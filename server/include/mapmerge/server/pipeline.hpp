@@ -32,12 +32,19 @@ class Pipeline {
     std::function<void(const std::string& robot)> retry;  ///< ask for another turn of a robot
     std::function<void()> changed;                        ///< maps or poses changed: republish
     std::function<bool()> cancelled;                      ///< true once the server shuts down
+    /// Run refine_job(robot) as a turn of its own (so a known robot's next map is fused while its
+    /// previous one is refined); without it the refinement runs inline.
+    std::function<void(const std::string& job)> refine;
   };
+
+  /// The scheduler key of `robot`'s refinement turn (ids cannot contain '#').
+  static std::string refine_job(const std::string& robot) { return robot + "#refine"; }
 
   /// `store` may be null (no persistence).
   Pipeline(const ServerConfig& config, Registry& registry, Store* store, Hooks hooks);
 
-  /// One turn of `robot`: its newest map (if any arrived) and/or a retry.
+  /// One turn of `robot`: its newest map (if any arrived) and/or a retry; for refine_job(robot),
+  /// the local refinement of the robot's latest map.
   void process(const std::string& robot, std::optional<MapSample> map, bool retry);
   /// Installs a map from the store at start-up (no persistence, no alignment).
   bool restore(const MapSample& map);
@@ -53,7 +60,10 @@ class Pipeline {
   bool refine_known(const RobotRecord& robot);
   bool moved_noticeably(const Eigen::Matrix4d& before, const Eigen::Matrix4d& after) const;
   void search_unknown(const RobotRecord& robot);
-  std::shared_ptr<const align::PreparedMap> prepared(const std::string& robot);
+  /// `robot`'s prepared map; with features (keypoints, descriptors) only when a global search needs
+  /// them: a known robot's refinement prepares stages 1-2 only (faster, smaller).
+  std::shared_ptr<const align::PreparedMap> prepared(const std::string& robot, bool features);
+  void refine_turn(const std::string& robot);
   /// Persists alignments, asks for a republish and, when `joined` (the aligned group grew),
   /// a retry of every unaligned robot.
   void on_new_alignment(const std::string& robot, bool joined);

@@ -67,7 +67,8 @@ class PreparedMap {
   double resolution() const;
   std::size_t num_points() const;     ///< occupied voxels (stage 1) [count]
   std::size_t num_filtered() const;   ///< after preprocessing [count]
-  std::size_t num_keypoints() const;  ///< with a valid descriptor [count]
+  std::size_t num_keypoints() const;  ///< with a valid descriptor [count]; 0 without features
+  bool has_features() const;          ///< keypoints and descriptors (stages 4, 5): usable by align()
   const StageTimings& timings() const;  ///< stages 1, 2, 4, 5 of this map
   const Impl& impl() const;
   bool empty() const { return impl_ == nullptr; }
@@ -81,6 +82,10 @@ class PreparedMap {
 PreparedMap prepare_map(const octomap::OcTree& tree, const AlignConfig& config);
 /// Same, sharing the tree instead of copying it (the tree must not change afterwards).
 PreparedMap prepare_map(std::shared_ptr<const octomap::OcTree> tree, const AlignConfig& config);
+
+/// Stages 1 and 2 only (no keypoints, no descriptors): all refine() and validate() read, at a
+/// fraction of prepare_map()'s time and memory; align() refuses such a map (not accepted).
+PreparedMap prepare_for_refine(std::shared_ptr<const octomap::OcTree> tree, const AlignConfig& config);
 
 /// Global search: stages 3, 6, 7, 8. Never throws for "no alignment".
 AlignResult align(const PreparedMap& target, const PreparedMap& source, const AlignConfig& config);

@@ -32,6 +32,18 @@ namespace detail {
 class SumTree;
 }
 
+/// A robot's map placed in the global frame, named for provenance.
+struct NamedMap {
+  std::string name;
+  const octomap::OcTree* map = nullptr;
+  Eigen::Matrix4d T_global_map = Eigen::Matrix4d::Identity();
+};
+
+/// Which map has the strongest occupied evidence for each voxel of the global grid of
+/// `resolution` [m] (resampled as fusion places it), and each map's frame under its name.
+/// O(occupied leaves of all maps).
+Provenance provenance_of(const std::vector<NamedMap>& maps, double resolution);
+
 /// What GlobalFusion::set() did.
 struct GlobalFuseResult {
   bool ok = false;
