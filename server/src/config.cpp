@@ -43,7 +43,8 @@ void read_network(const YAML::Node& n, NetworkConfig& c) {
 
 void read_merge(const YAML::Node& n, MergeConfig& c) {
   check_keys(n, "merge", {"threads", "reference", "global_frame", "global_resolution", "refine_known",
-                          "refine_republish_translation", "refine_republish_rotation_deg"});
+                          "refine_republish_translation", "refine_republish_rotation_deg", "extra_pairs",
+                          "extra_min_overlap", "extra_overlap_samples", "extra_global_fallback", "extra_max_jobs"});
   read(n, "threads", c.threads, "merge");
   read(n, "reference", c.reference, "merge");
   read(n, "global_frame", c.global_frame, "merge");
@@ -51,6 +52,11 @@ void read_merge(const YAML::Node& n, MergeConfig& c) {
   read(n, "refine_known", c.refine_known, "merge");
   read(n, "refine_republish_translation", c.refine_republish_translation, "merge");
   read(n, "refine_republish_rotation_deg", c.refine_republish_rotation_deg, "merge");
+  read(n, "extra_pairs", c.extra_pairs, "merge");
+  read(n, "extra_min_overlap", c.extra_min_overlap, "merge");
+  read(n, "extra_overlap_samples", c.extra_overlap_samples, "merge");
+  read(n, "extra_global_fallback", c.extra_global_fallback, "merge");
+  read(n, "extra_max_jobs", c.extra_max_jobs, "merge");
 }
 
 void read_publish(const YAML::Node& n, PublishConfig& c) {
@@ -82,6 +88,11 @@ void check(const ServerConfig& c) {
   if (c.network.domain < 0 || c.network.domain > 101) throw ConfigError("network.domain must be in 0..101");
   if (c.merge.threads < 1 || c.merge.threads > 256) throw ConfigError("merge.threads must be in 1..256");
   if (c.merge.global_resolution < 0.0) throw ConfigError("merge.global_resolution must be >= 0");
+  if (!(c.merge.extra_min_overlap >= 0.0 && c.merge.extra_min_overlap <= 1.0)) {
+    throw ConfigError("merge.extra_min_overlap must be in 0..1");
+  }
+  if (c.merge.extra_overlap_samples < 1) throw ConfigError("merge.extra_overlap_samples must be >= 1");
+  if (c.merge.extra_max_jobs < 0) throw ConfigError("merge.extra_max_jobs must be >= 0");
   if (c.publish.min_interval_s < 0.0 || c.publish.republish_period_s <= 0.0 || c.publish.status_period_s <= 0.0) {
     throw ConfigError("publish periods must be positive");
   }

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cstdio>
 #include <cmath>
 #include <string_view>
 
@@ -23,6 +24,20 @@ double seconds_since(std::chrono::steady_clock::time_point t0) {
 std::string tried_key(const RobotRecord& other) {
   return other.robot_id + "#" + std::to_string(other.map_revision);
 }
+
+std::pair<std::string, std::string> ordered(const std::string& a, const std::string& b) {
+  return a < b ? std::make_pair(a, b) : std::make_pair(b, a);
+}
+
+/// Rotation angle [deg] and translation [m] between two rigid transforms.
+std::pair<double, double> difference(const Eigen::Matrix4d& a, const Eigen::Matrix4d& b) {
+  const Eigen::Matrix4d d = rigid_inverse(a) * b;
+  const double c = std::clamp((d.topLeftCorner<3, 3>().trace() - 1.0) / 2.0, -1.0, 1.0);
+  return {std::acos(c) * 180.0 / M_PI, d.topRightCorner<3, 1>().norm()};
+}
+
+constexpr double kOverlapReuseDeg = 5.0;  ///< an overlap estimate holds while the pair's relative pose moves less [deg]
+constexpr double kOverlapReuseM = 0.5;    ///< ... and less than this [m]
 
 std::size_t content_hash(const MapSample& m) {
   return std::hash<std::string_view>{}(
@@ -80,7 +95,10 @@ bool Pipeline::ingest(const MapSample& m, bool persist) {
   r.content_hash = content_hash(m);
   const std::size_t leaves = decoded.tree->getNumLeafNodes();
   warn_on_resolution(robot, r.resolution);
+  const auto before = registry_.get(robot);
+  const bool new_session = before && !before->session_id.empty() && before->session_id != r.session_id;
   registry_.put_map(std::move(r));
+  if (persist && new_session) persist_edges();  // its alignments were dropped
   const auto t1 = std::chrono::steady_clock::now();
   if (persist && store_ != nullptr) {
     try {
@@ -119,6 +137,7 @@ void Pipeline::place(const std::string& robot) {
     // A growing map keeps its frame: fuse it at once with the known transform, then polish the
     // transform locally and republish only if that moved the robot noticeably.
     if (hooks_.changed) hooks_.changed();
+    if (hooks_.more_idle_work) hooks_.more_idle_work();  // its extra pairs are worth a new try
     if (!config_.merge.refine_known) return;
     if (hooks_.refine) {
       hooks_.refine(refine_job(robot));
@@ -159,7 +178,9 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
   std::vector<std::shared_ptr<const RobotRecord>> candidates;
   for (const auto& [id, pose] : registry_.poses()) {
     auto other = registry_.get(id);
-    if (id != rec.robot_id && other && rec.tried.count(tried_key(*other)) == 0) candidates.push_back(other);
+    if (id != rec.robot_id && other && rec.tried.count(tried_key(*other)) == 0 && !attempted(rec, *other, "search")) {
+      candidates.push_back(other);
+    }
   }
   std::sort(candidates.begin(), candidates.end(),
             [](const auto& a, const auto& b) { return a->tree->size() > b->tree->size(); });
@@ -172,6 +193,7 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
     const align::AlignResult res = align_global(*target, *me, config_.align);
     report({other->robot_id, rec.robot_id, res.accepted, true, res.fitness, seconds_since(t0), res.reason, unix_now()});
     registry_.mark_tried(rec.robot_id, rec.map_revision, tried_key(*other));
+    record_attempt(rec, *other, "search", res.accepted, res.reason);
     if (res.accepted) {
       registry_.put_edge(make_edge(*other, rec, res));
       on_new_alignment(rec.robot_id, true);
@@ -184,6 +206,7 @@ bool Pipeline::refine_known(const RobotRecord& rec) {
   const auto me = prepared(rec.robot_id, false);
   if (!me) return false;
   bool moved = false;
+  bool refined = false;
   // The robot's own links to the group: edges where its map is the source. Edges of robots
   // aligned to it keep their transform (a growing map does not move its frame).
   for (const Edge& e : registry_.edges_of(rec.robot_id)) {
@@ -195,8 +218,10 @@ bool Pipeline::refine_known(const RobotRecord& rec) {
     report({e.target, e.source, res.accepted, false, res.fitness, seconds_since(t0), res.reason, unix_now()});
     if (!res.accepted) continue;
     if (const auto target_rec = registry_.get(e.target)) registry_.put_edge(make_edge(*target_rec, rec, res));
+    refined = true;
     moved |= moved_noticeably(e.T_target_source, res.T_target_source);
   }
+  if (refined && !moved) persist_edges();  // moved: on_new_alignment persists
   return moved;
 }
 
@@ -205,15 +230,19 @@ bool Pipeline::moved_noticeably(const Eigen::Matrix4d& before, const Eigen::Matr
                                   config_.merge.refine_republish_rotation_deg);
 }
 
-void Pipeline::on_new_alignment(const std::string& robot, bool joined) {
-  if (store_ != nullptr) {
-    try {
-      store_->save_alignment(registry_.reference(), registry_.edges());
-    } catch (const StoreError& e) {
-      spdlog::error("alignment kept in memory only, store failed: {}", e.what());
-    }
+void Pipeline::persist_edges() {
+  if (store_ == nullptr) return;
+  try {
+    store_->save_alignment(registry_.reference(), registry_.edges(), registry_.edge_verdicts());
+  } catch (const StoreError& e) {
+    spdlog::error("alignment kept in memory only, store failed: {}", e.what());
   }
+}
+
+void Pipeline::on_new_alignment(const std::string& robot, bool joined) {
+  persist_edges();
   if (hooks_.changed) hooks_.changed();
+  if (hooks_.more_idle_work) hooks_.more_idle_work();
   if (!joined) return;  // the aligned group did not grow: nothing new to try the others against
   const auto poses = registry_.poses();
   for (const auto& r : registry_.all()) {
@@ -231,7 +260,141 @@ void Pipeline::report(MergeReportOut r) {
   while (reports_.size() > kRecentMerges) reports_.pop_front();
 }
 
-PipelineCounters Pipeline::counters() const { return {accepted_.load(), rejected_.load(), merges_.load()}; }
+PipelineCounters Pipeline::counters() const {
+  return {accepted_.load(), rejected_.load(), merges_.load(), extra_tried_.load(), extra_added_.load()};
+}
+
+// ---- pairs tried -------------------------------------------------------------------------
+
+bool Pipeline::attempted(const RobotRecord& a, const RobotRecord& b, const std::string& kind) const {
+  const auto [first_id, second_id] = ordered(a.robot_id, b.robot_id);
+  std::lock_guard<std::mutex> lock(pairs_mutex_);
+  const auto it = attempts_.find(first_id + "|" + second_id + "|" + kind);
+  if (it == attempts_.end()) return false;
+  const RobotRecord& first = a.robot_id < b.robot_id ? a : b;
+  const RobotRecord& second = a.robot_id < b.robot_id ? b : a;
+  return it->second.hash_a == first.content_hash && it->second.hash_b == second.content_hash;
+}
+
+void Pipeline::record_attempt(const RobotRecord& a, const RobotRecord& b, const std::string& kind, bool accepted,
+                              const std::string& reason) {
+  const RobotRecord& first = a.robot_id < b.robot_id ? a : b;
+  const RobotRecord& second = a.robot_id < b.robot_id ? b : a;
+  const PairAttempt attempt{first.robot_id, second.robot_id, kind, first.content_hash, second.content_hash,
+                            accepted, reason, unix_now()};
+  {
+    std::lock_guard<std::mutex> lock(pairs_mutex_);
+    attempts_[attempt.robot_a + "|" + attempt.robot_b + "|" + kind] = attempt;
+  }
+  if (store_ == nullptr) return;
+  try {
+    store_->save_attempt(attempt);
+  } catch (const StoreError& e) {
+    spdlog::error("pair {}-{}: try kept in memory only, store failed: {}", attempt.robot_a, attempt.robot_b, e.what());
+  }
+}
+
+void Pipeline::restore_attempts(const std::vector<PairAttempt>& attempts) {
+  std::lock_guard<std::mutex> lock(pairs_mutex_);
+  for (const PairAttempt& a : attempts) attempts_[a.robot_a + "|" + a.robot_b + "|" + a.kind] = a;
+}
+
+// ---- extra pairs (idle work) -------------------------------------------------------------
+
+std::function<void()> Pipeline::next_extra_pair() {
+  if (!config_.merge.extra_pairs || (hooks_.cancelled && hooks_.cancelled())) return {};
+  std::optional<ExtraPair> pair = pick_extra_pair();
+  if (!pair) return {};
+  return [this, p = *pair] { align_extra_pair(p); };
+}
+
+double Pipeline::cached_overlap(const RobotRecord& target, const RobotRecord& source,
+                                const Eigen::Matrix4d& T_target_source) {
+  const std::pair<std::string, std::string> key{target.robot_id, source.robot_id};
+  {
+    std::lock_guard<std::mutex> lock(pairs_mutex_);
+    const auto it = overlaps_.find(key);
+    if (it != overlaps_.end() && it->second.target_hash == target.content_hash &&
+        it->second.source_hash == source.content_hash) {
+      const auto [deg, m] = difference(it->second.T_target_source, T_target_source);
+      if (deg < kOverlapReuseDeg && m < kOverlapReuseM) return it->second.overlap;
+    }
+  }
+  const double overlap = estimate_overlap(*target.tree, *source.tree, T_target_source,
+                                          static_cast<std::size_t>(config_.merge.extra_overlap_samples));
+  std::lock_guard<std::mutex> lock(pairs_mutex_);
+  overlaps_[key] = {target.content_hash, source.content_hash, T_target_source, overlap};
+  return overlap;
+}
+
+std::optional<Pipeline::ExtraPair> Pipeline::pick_extra_pair() {
+  const auto poses = registry_.poses();
+  std::set<std::pair<std::string, std::string>> linked;
+  for (const Edge& e : registry_.edges()) linked.insert(ordered(e.target, e.source));
+  std::vector<std::shared_ptr<const RobotRecord>> aligned;
+  for (const auto& kv : poses) {
+    if (auto r = registry_.get(kv.first); r && r->tree) aligned.push_back(r);
+  }
+  std::optional<ExtraPair> best;
+  for (std::size_t i = 0; i < aligned.size(); ++i) {
+    for (std::size_t j = i + 1; j < aligned.size(); ++j) {
+      const auto key = ordered(aligned[i]->robot_id, aligned[j]->robot_id);
+      if (linked.count(key) != 0 || attempted(*aligned[i], *aligned[j], "extra")) continue;
+      {
+        std::lock_guard<std::mutex> lock(pairs_mutex_);
+        if (in_progress_.count(key) != 0) continue;
+      }
+      // The larger map is the target; the overlap is measured on the smaller one.
+      const bool i_larger = aligned[i]->tree->size() >= aligned[j]->tree->size();
+      const RobotRecord& t = i_larger ? *aligned[i] : *aligned[j];
+      const RobotRecord& s = i_larger ? *aligned[j] : *aligned[i];
+      const Eigen::Matrix4d T = rigid_inverse(poses.at(t.robot_id).T_global_robot) * poses.at(s.robot_id).T_global_robot;
+      const double overlap = cached_overlap(t, s, T);
+      if (overlap < config_.merge.extra_min_overlap || (best && best->overlap >= overlap)) continue;
+      best = ExtraPair{t.robot_id, s.robot_id, t.map_revision, s.map_revision, t.content_hash, s.content_hash, T, overlap};
+    }
+  }
+  if (!best) return std::nullopt;
+  std::lock_guard<std::mutex> lock(pairs_mutex_);
+  if (!in_progress_.insert(ordered(best->target, best->source)).second) return std::nullopt;  // another worker took it
+  return best;
+}
+
+void Pipeline::align_extra_pair(const ExtraPair& p) {
+  const auto done = [&] {
+    std::lock_guard<std::mutex> lock(pairs_mutex_);
+    in_progress_.erase(ordered(p.target, p.source));
+  };
+  const auto cancelled = [&] { return hooks_.cancelled && hooks_.cancelled(); };
+  auto target = prepared(p.target, false);
+  auto source = prepared(p.source, false);
+  if (!target || !source || cancelled()) return done();
+  char what[64];
+  std::snprintf(what, sizeof what, "extra pair, estimated overlap %.2f", p.overlap);
+  spdlog::info("merge {} <- {}: {}: refining from the pose estimates", p.target, p.source, what);
+  auto t0 = std::chrono::steady_clock::now();
+  align::AlignResult res = align_local(*target, *source, p.T_target_source, config_.align);
+  report({p.target, p.source, res.accepted, false, res.fitness, seconds_since(t0),
+          std::string(what) + (res.accepted ? "" : ": " + res.reason), unix_now()});
+  if (!res.accepted && config_.merge.extra_global_fallback && !cancelled() &&
+      (target = prepared(p.target, true)) && (source = prepared(p.source, true))) {
+    t0 = std::chrono::steady_clock::now();
+    res = align_global(*target, *source, config_.align);
+    report({p.target, p.source, res.accepted, true, res.fitness, seconds_since(t0),
+            std::string(what) + (res.accepted ? "" : ": " + res.reason), unix_now()});
+  }
+  ++extra_tried_;
+  const auto t = registry_.get(p.target);
+  const auto s = registry_.get(p.source);
+  const bool current = t && s && t->map_revision == p.target_revision && s->map_revision == p.source_revision;
+  if (!current || cancelled()) return done();  // a map changed meanwhile: the pair is tried again
+  record_attempt(*t, *s, "extra", res.accepted, res.reason);
+  done();
+  if (!res.accepted) return;
+  registry_.put_edge(make_edge(*t, *s, res));
+  ++extra_added_;
+  on_new_alignment(p.source, false);
+}
 
 std::vector<MergeReportOut> Pipeline::recent_merges() const {
   std::lock_guard<std::mutex> lock(reports_mutex_);

@@ -1,5 +1,6 @@
 #include "mapmerge/server/registry.hpp"
 
+#include <cstdio>
 #include <set>
 #include <stdexcept>
 
@@ -11,6 +12,7 @@ namespace {
 /// Information of an alignment edge (graph/information.hpp). A restored edge carries no inlier
 /// count or overlap: it is taken as a typical alignment of its fitness.
 graph::Matrix6d edge_information(const Edge& e, const graph::InformationConfig& config) {
+  if (!e.information.isZero(0.0)) return e.information;  // as computed when the edge was made
   graph::AlignmentQuality q{e.inliers, e.fitness, e.overlap, e.pivot_source};
   if (q.inliers == 0) {
     q.inliers = static_cast<std::size_t>(config.reference_inliers);
@@ -22,6 +24,30 @@ graph::Matrix6d edge_information(const Edge& e, const graph::InformationConfig& 
     info = graph::information_from_alignment(q, config);
   }
   return info.information;
+}
+
+const char* state_name(graph::EdgeState s) {
+  switch (s) {
+    case graph::EdgeState::kAccepted: return "accepted";
+    case graph::EdgeState::kRejected: return "rejected";
+    case graph::EdgeState::kNotConnected: break;
+  }
+  return "not_connected";
+}
+
+/// "loop a|b > b|c > c|a open by 120.31 deg (tol 3.46), 4.210 m (tol 0.310); ..."
+std::string evidence_text(const std::vector<graph::CycleEvidence>& loops) {
+  std::string out;
+  for (const graph::CycleEvidence& c : loops) {
+    if (!out.empty()) out += "; ";
+    out += "loop";
+    for (std::size_t i = 0; i < c.edges.size(); ++i) out += (i == 0 ? " " : " > ") + c.edges[i];
+    char buf[160];
+    std::snprintf(buf, sizeof buf, " open by %.2f deg (tol %.2f), %.3f m (tol %.3f)", c.rotation_error_deg,
+                  c.rotation_tolerance_deg, c.translation_error, c.translation_tolerance);
+    out += buf;
+  }
+  return out;
 }
 
 }  // namespace
@@ -233,12 +259,29 @@ std::map<std::string, GlobalPose> Registry::poses_locked() const {
   return poses;
 }
 
-std::vector<Registry::RejectedEdge> Registry::rejected_edges() const {
+std::vector<EdgeVerdict> Registry::edge_verdicts() const {
   std::lock_guard<std::mutex> lock(mutex_);
-  std::vector<RejectedEdge> out;
   const graph::GraphSolution solution = solve_locked();
-  for (const graph::EdgeSolution& e : solution.edges) {
-    if (e.state == graph::EdgeState::kRejected) out.push_back({e.target, e.source, e.reason});
+  std::vector<EdgeVerdict> out;
+  for (const auto& kv : edges_) {
+    const Edge& e = kv.second;
+    EdgeVerdict v{e.target, e.source, "not_connected", "", ""};
+    if (const graph::EdgeSolution* g = solution.edge(graph::default_edge_id(e.source, e.target))) {
+      v.state = state_name(g->state);
+      v.reason = g->reason;
+      v.evidence = evidence_text(g->evidence);
+    } else if (!solution.valid) {
+      v.reason = solution.reason;
+    }
+    out.push_back(std::move(v));
+  }
+  return out;
+}
+
+std::vector<EdgeVerdict> Registry::rejected_edges() const {
+  std::vector<EdgeVerdict> out;
+  for (EdgeVerdict& v : edge_verdicts()) {
+    if (v.state == "rejected") out.push_back(std::move(v));
   }
   return out;
 }

@@ -6,8 +6,13 @@
 
 namespace mapmerge::server {
 
-Scheduler::Scheduler(int threads, Job job) : job_(std::move(job)) {
-  for (int i = 0; i < std::max(1, threads); ++i) threads_.emplace_back([this] { worker(); });
+Scheduler::Scheduler(int threads, Job job) : Scheduler(threads, std::move(job), nullptr) {}
+
+Scheduler::Scheduler(int threads, Job job, IdleSource idle, int max_idle_jobs)
+    : job_(std::move(job)), idle_(std::move(idle)) {
+  const int n = std::max(1, threads);
+  max_idle_jobs_ = max_idle_jobs > 0 ? max_idle_jobs : std::max(1, n - 1);
+  for (int i = 0; i < n; ++i) threads_.emplace_back([this] { worker(); });
 }
 
 Scheduler::~Scheduler() { stop(); }
@@ -40,35 +45,76 @@ void Scheduler::retry(const std::string& robot) {
   enqueue_locked(robot, slot);
 }
 
+bool Scheduler::idle_allowed_locked() const {
+  return idle_ && idle_pending_ && ready_.empty() && idle_running_ < max_idle_jobs_;
+}
+
 void Scheduler::worker() {
   std::unique_lock<std::mutex> lock(mutex_);
   while (true) {
-    cv_.wait(lock, [this] { return stopping_ || !ready_.empty(); });
+    cv_.wait(lock, [this] { return stopping_ || !ready_.empty() || idle_allowed_locked(); });
     if (stopping_) return;
-    const std::string robot = ready_.front();
-    ready_.pop_front();
-    stats_.queued = ready_.size();
-    Slot& slot = slots_[robot];
-    std::optional<MapSample> map = std::move(slot.map);
-    slot.map.reset();
-    const bool retry = slot.retry;
-    slot.retry = false;
-    slot.queued = false;
-    slot.busy = true;
-    ++running_;
-    lock.unlock();
-    try {
-      job_(robot, std::move(map), retry);
-    } catch (const std::exception& e) {
-      spdlog::error("job for robot {} failed: {}", robot, e.what());
+    if (!ready_.empty()) {
+      run_robot(lock);
+    } else {
+      run_idle(lock);
     }
-    lock.lock();
-    --running_;
-    ++stats_.jobs_run;
-    Slot& after = slots_[robot];
-    after.busy = false;
-    if (after.map || after.retry) enqueue_locked(robot, after);
   }
+}
+
+void Scheduler::run_robot(std::unique_lock<std::mutex>& lock) {
+  const std::string robot = ready_.front();
+  ready_.pop_front();
+  stats_.queued = ready_.size();
+  Slot& slot = slots_[robot];
+  std::optional<MapSample> map = std::move(slot.map);
+  slot.map.reset();
+  const bool retry = slot.retry;
+  slot.retry = false;
+  slot.queued = false;
+  slot.busy = true;
+  ++running_;
+  lock.unlock();
+  try {
+    job_(robot, std::move(map), retry);
+  } catch (const std::exception& e) {
+    spdlog::error("job for robot {} failed: {}", robot, e.what());
+  }
+  lock.lock();
+  --running_;
+  ++stats_.jobs_run;
+  Slot& after = slots_[robot];
+  after.busy = false;
+  if (after.map || after.retry) enqueue_locked(robot, after);
+}
+
+void Scheduler::run_idle(std::unique_lock<std::mutex>& lock) {
+  idle_pending_ = false;
+  ++idle_running_;
+  lock.unlock();
+  bool ran = false;
+  try {
+    if (std::function<void()> job = idle_()) {
+      ran = true;
+      job();
+    }
+  } catch (const std::exception& e) {
+    spdlog::error("idle job failed: {}", e.what());
+  }
+  lock.lock();
+  --idle_running_;
+  if (ran) {
+    ++stats_.idle_jobs_run;
+    idle_pending_ = true;  // there may be more
+    cv_.notify_one();
+  }
+}
+
+void Scheduler::kick_idle() {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (stopping_ || !idle_) return;
+  idle_pending_ = true;
+  cv_.notify_all();
 }
 
 void Scheduler::stop() {
@@ -90,7 +136,7 @@ SchedulerStats Scheduler::stats() const {
 
 bool Scheduler::idle() const {
   std::lock_guard<std::mutex> lock(mutex_);
-  return ready_.empty() && running_ == 0;
+  return ready_.empty() && running_ == 0 && idle_running_ == 0;
 }
 
 }  // namespace mapmerge::server

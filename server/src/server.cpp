@@ -24,12 +24,17 @@ Server::Server(ServerConfig config) : config_(std::move(config)) {
   };
   hooks.cancelled = [this] { return stopping_.load(); };
   hooks.refine = [this](const std::string& job) { scheduler_->retry(job); };
+  hooks.more_idle_work = [this] {
+    if (scheduler_) scheduler_->kick_idle();
+  };
   pipeline_ = std::make_unique<Pipeline>(config_, registry_, store_.get(), hooks);
   restore();
-  scheduler_ = std::make_unique<Scheduler>(config_.merge.threads,
+  scheduler_ = std::make_unique<Scheduler>(
+      config_.merge.threads,
       [this](const std::string& robot, std::optional<MapSample> map, bool retry) {
         pipeline_->process(robot, std::move(map), retry);
-      });
+      },
+      [this] { return pipeline_->next_extra_pair(); }, config_.merge.extra_max_jobs);
   DdsIo::Callbacks callbacks;
   callbacks.on_map = [this](MapSample s) { on_map(std::move(s)); };
   callbacks.on_request = [this](const std::string& who) {
@@ -45,6 +50,7 @@ Server::Server(ServerConfig config) : config_(std::move(config)) {
   for (const auto& rec : registry_.all()) {
     if (registry_.status(rec->robot_id) != RobotStatus::kAligned) scheduler_->retry(rec->robot_id);
   }
+  scheduler_->kick_idle();  // extra pairs not tried before the restart
 }
 
 Server::~Server() {
@@ -62,12 +68,14 @@ void Server::restore() {
     pipeline_->restore(m);
   }
   for (const Edge& e : snap.edges) registry_.put_edge(e);
+  pipeline_->restore_attempts(snap.attempts);
   if (snap.global) {
     version_ = snap.global->version;
     last_global_ = std::move(snap.global);
   }
-  spdlog::info("restored {} robots, {} alignments, global map version {} from {}", snap.maps.size(),
-               snap.edges.size(), version_, store_->path());
+  spdlog::info("restored {} robots, {} alignments ({} rejected by the pose graph), {} pairs tried, global map "
+               "version {} from {}", snap.maps.size(), snap.edges.size(), registry_.rejected_edges().size(),
+               snap.attempts.size(), version_, store_->path());
 }
 
 void Server::on_map(MapSample sample) {
@@ -94,6 +102,9 @@ void Server::run() {
   }
   spdlog::info("shutting down");
   scheduler_->stop();
+  const auto c = pipeline_->counters();
+  spdlog::info("pose graph: {} edges, {} rejected; extra pairs: {} tried, {} edges added", registry_.edges().size(),
+               registry_.rejected_edges().size(), c.extra_pairs_tried, c.extra_edges_added);
 }
 
 void Server::stop() {
@@ -172,7 +183,7 @@ void Server::publish_status() {
     r.source = e.source;
     r.accepted = false;
     r.global_search = false;
-    r.detail = "rejected by the pose graph: " + e.reason;
+    r.detail = "rejected by the pose graph: " + e.reason + (e.evidence.empty() ? "" : "; evidence: " + e.evidence);
     r.stamp_unix = unix_now();
     s.recent_merges.push_back(r);
   }

@@ -2,6 +2,9 @@
 
 #include <cstring>
 #include <filesystem>
+#include <map>
+#include <set>
+#include <utility>
 
 #include <nlohmann/json.hpp>
 
@@ -19,6 +22,8 @@ CREATE TABLE IF NOT EXISTS robots(robot_id TEXT PRIMARY KEY, session_id TEXT, se
   ros_id TEXT, data BLOB NOT NULL);
 CREATE TABLE IF NOT EXISTS edges(target TEXT, source TEXT, T BLOB NOT NULL, fitness REAL,
   PRIMARY KEY(target, source));
+CREATE TABLE IF NOT EXISTS pair_attempts(robot_a TEXT, robot_b TEXT, kind TEXT, hash_a INTEGER,
+  hash_b INTEGER, accepted INTEGER, reason TEXT, stamp REAL, PRIMARY KEY(robot_a, robot_b, kind));
 CREATE TABLE IF NOT EXISTS global_map(id INTEGER PRIMARY KEY CHECK(id = 1), version INTEGER,
   stamp REAL, frame_id TEXT, resolution REAL, encoding TEXT, data BLOB, ros_body BLOB,
   contributors TEXT);
@@ -26,7 +31,26 @@ CREATE TABLE IF NOT EXISTS poses(robot_id TEXT PRIMARY KEY, frame TEXT, T BLOB N
   fitness REAL, quality REAL, state INTEGER);
 )SQL";
 
+/// Columns added to `edges` after its first version (ALTER TABLE on older stores).
+constexpr std::pair<const char*, const char*> kEdgeColumns[] = {
+    {"inliers", "INTEGER DEFAULT 0"}, {"overlap", "REAL DEFAULT 0"}, {"pivot", "BLOB"},
+    {"information", "BLOB"},          {"state", "TEXT"},             {"reason", "TEXT"},
+    {"evidence", "TEXT"}};
+
 std::vector<double> to_vec(const Eigen::Matrix4d& T) { return {T.data(), T.data() + 16}; }
+
+template <class M>
+void bind_matrix(Stmt& s, int i, const M& m) {
+  s.bind(i, m.data(), static_cast<std::size_t>(m.size()) * sizeof(double));
+}
+
+/// A matrix from its blob; `fallback` when the blob is missing or has the wrong size.
+template <class M>
+M matrix_from_blob(const std::vector<std::uint8_t>& b, const M& fallback) {
+  M m = fallback;
+  if (b.size() == static_cast<std::size_t>(m.size()) * sizeof(double)) std::memcpy(m.data(), b.data(), b.size());
+  return m;
+}
 
 Eigen::Matrix4d from_blob(const std::vector<std::uint8_t>& b) {
   Eigen::Matrix4d T = Eigen::Matrix4d::Identity();
@@ -64,6 +88,17 @@ Store::Store(const StoreConfig& config) {
   exec("PRAGMA journal_mode=WAL;");
   exec(config.synchronous_full ? "PRAGMA synchronous=FULL;" : "PRAGMA synchronous=NORMAL;");
   exec(kSchema);
+  migrate();
+}
+
+void Store::migrate() {
+  std::set<std::string> have;
+  for (Stmt s(db_, "PRAGMA table_info(edges)"); s.step();) have.insert(s.text(1));
+  for (const auto& [name, type] : kEdgeColumns) {
+    if (have.count(name) != 0) continue;
+    const std::string sql = std::string("ALTER TABLE edges ADD COLUMN ") + name + " " + type + ";";
+    exec(sql.c_str());
+  }
 }
 
 Store::~Store() { sqlite3_close(db_); }
@@ -100,15 +135,35 @@ void Store::save_map(const MapSample& m) {
   });
 }
 
-void Store::save_alignment(const std::string& reference, const std::vector<Edge>& edges) {
+void Store::save_alignment(const std::string& reference, const std::vector<Edge>& edges,
+                           const std::vector<EdgeVerdict>& verdicts) {
+  std::map<std::pair<std::string, std::string>, const EdgeVerdict*> verdict;
+  for (const EdgeVerdict& v : verdicts) verdict[{v.target, v.source}] = &v;
   transaction([&] {
     Stmt(db_, "INSERT OR REPLACE INTO meta VALUES('reference', ?)").bind(1, reference).run();
     exec("DELETE FROM edges;");
     for (const Edge& e : edges) {
-      const auto T = to_vec(e.T_target_source);
-      Stmt s(db_, "INSERT INTO edges VALUES(?,?,?,?)");
-      s.bind(1, e.target).bind(2, e.source).bind(3, T.data(), T.size() * sizeof(double)).bind(4, e.fitness).run();
+      Stmt s(db_, "INSERT INTO edges(target, source, T, fitness, inliers, overlap, pivot, information, state, "
+                  "reason, evidence) VALUES(?,?,?,?,?,?,?,?,?,?,?)");
+      s.bind(1, e.target).bind(2, e.source);
+      bind_matrix(s, 3, e.T_target_source);
+      s.bind(4, e.fitness).bind(5, static_cast<std::int64_t>(e.inliers)).bind(6, e.overlap);
+      bind_matrix(s, 7, e.pivot_source);
+      bind_matrix(s, 8, e.information);
+      const auto v = verdict.find({e.target, e.source});
+      const EdgeVerdict none{};
+      const EdgeVerdict& ev = v == verdict.end() ? none : *v->second;
+      s.bind(9, ev.state).bind(10, ev.reason).bind(11, ev.evidence).run();
     }
+  });
+}
+
+void Store::save_attempt(const PairAttempt& a) {
+  transaction([&] {
+    Stmt s(db_, "INSERT OR REPLACE INTO pair_attempts VALUES(?,?,?,?,?,?,?,?)");
+    s.bind(1, a.robot_a).bind(2, a.robot_b).bind(3, a.kind).bind(4, static_cast<std::int64_t>(a.hash_a));
+    s.bind(5, static_cast<std::int64_t>(a.hash_b)).bind(6, std::int64_t{a.accepted}).bind(7, a.reason);
+    s.bind(8, a.stamp_unix).run();
   });
 }
 
@@ -147,8 +202,21 @@ StoreSnapshot Store::load() {
     m.data = s.blob(10);
     snap.maps.push_back(std::move(m));
   }
-  for (Stmt s(db_, "SELECT target, source, T, fitness FROM edges"); s.step();) {
-    snap.edges.push_back(Edge{s.text(0), s.text(1), from_blob(s.blob(2)), s.real(3)});
+  for (Stmt s(db_, "SELECT target, source, T, fitness, inliers, overlap, pivot, information, state, reason, "
+                  "evidence FROM edges ORDER BY target, source");
+       s.step();) {
+    Edge e{s.text(0), s.text(1), from_blob(s.blob(2)), s.real(3)};
+    e.inliers = static_cast<std::size_t>(std::max<std::int64_t>(0, s.integer(4)));
+    e.overlap = s.real(5);
+    e.pivot_source = matrix_from_blob<Eigen::Vector3d>(s.blob(6), Eigen::Vector3d::Zero());
+    e.information = matrix_from_blob<Eigen::Matrix<double, 6, 6>>(s.blob(7), Eigen::Matrix<double, 6, 6>::Zero());
+    snap.verdicts.push_back(EdgeVerdict{e.target, e.source, s.text(8), s.text(9), s.text(10)});
+    snap.edges.push_back(std::move(e));
+  }
+  for (Stmt s(db_, "SELECT * FROM pair_attempts ORDER BY robot_a, robot_b"); s.step();) {
+    snap.attempts.push_back(PairAttempt{s.text(0), s.text(1), s.text(2), static_cast<std::uint64_t>(s.integer(3)),
+                                        static_cast<std::uint64_t>(s.integer(4)), s.integer(5) != 0, s.text(6),
+                                        s.real(7)});
   }
   for (Stmt s(db_, "SELECT * FROM global_map WHERE id=1"); s.step();) {
     GlobalMapOut g;

@@ -82,6 +82,7 @@ struct ReceivedMerge {
   std::string target, source;
   bool accepted = false;
   bool global_search = true;
+  std::string detail;  ///< e.g. "extra pair, ...", "rejected by the pose graph: ..."
 };
 
 /// The last server status seen.

@@ -31,7 +31,7 @@ struct FleetListener::Impl {
       const std::string key = m.target_robot() + "<" + m.source_robot() + "@" + std::to_string(m.stamp().sec()) + "." +
                               std::to_string(m.stamp().nanosec());
       if (merge_keys.insert(key).second) {
-        merges.push_back({m.target_robot(), m.source_robot(), m.accepted(), m.global_search()});
+        merges.push_back({m.target_robot(), m.source_robot(), m.accepted(), m.global_search(), m.detail()});
       }
     }
     status.updates_received = s.updates_received();

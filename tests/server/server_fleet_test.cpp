@@ -1,6 +1,12 @@
 // mapmerge-server end to end: a real server process, robots and an operator as real Fast DDS
 // participants on loopback (the `local` profile), real SQLite state, real maps cut from data/.
 
+#include <algorithm>
+#include <set>
+#include <thread>
+
+#include "five_robots.hpp"
+#include "mapmerge/server/store.hpp"
 #include "server_fixture.hpp"
 
 namespace mapmerge::test {
@@ -62,6 +68,105 @@ TEST_F(ServerFleet, ThreeRobotsAreAlignedAndAStrangerStaysUnknown) {
   EXPECT_GT(op.ros_global_bytes(), 0u);
   EXPECT_TRUE(op.wait_for([&] { return op.tf_children().size() >= 3; }, 10s));
   EXPECT_EQ(server->kill(SIGTERM), 0) << server->log();
+}
+
+/// Distinct robot pairs with an accepted alignment among the merge reports.
+std::set<std::pair<std::string, std::string>> accepted_pairs(const FleetListener& op) {
+  std::set<std::pair<std::string, std::string>> pairs;
+  for (const auto& m : op.merges()) {
+    if (m.accepted) pairs.insert(std::minmax(m.target, m.source));
+  }
+  return pairs;
+}
+
+std::size_t extra_edges(const FleetListener& op) {
+  std::set<std::pair<std::string, std::string>> pairs;
+  for (const auto& m : op.merges()) {
+    if (m.accepted && m.detail.rfind("extra pair", 0) == 0) pairs.insert(std::minmax(m.target, m.source));
+  }
+  return pairs.size();
+}
+
+/// Waits until the server has run no merge for `quiet` (status every second).
+bool settled(FleetListener& op, std::chrono::seconds quiet, std::chrono::seconds timeout) {
+  std::uint64_t last = op.status().merges_run;
+  auto since = std::chrono::steady_clock::now();
+  return op.wait_for([&] {
+    const std::uint64_t now = op.status().merges_run;
+    if (now != last) {
+      last = now;
+      since = std::chrono::steady_clock::now();
+    }
+    return std::chrono::steady_clock::now() - since >= quiet;
+  }, timeout);
+}
+
+TEST_F(ServerFleet, FiveRobotsGetAGraphWithCyclesThatSurvivesARestart) {
+  // Five robots cut from geb079 (five_robots.hpp): 7 overlapping pairs, 4 needed to place them.
+  const FiveRobots& f = FiveRobots::get();
+  auto server = start_server({"--reference", "r1"});
+  FleetListener op(domain);
+  const std::vector<std::string>& ids = f.ids;
+  {
+    std::vector<std::unique_ptr<RobotPublisher>> pubs;
+    for (std::size_t i = 0; i < ids.size(); ++i) {
+      pubs.push_back(std::make_unique<RobotPublisher>(domain, ids[i]));
+      pubs.back()->publish(*f.maps[i]);
+    }
+    // A tree over five robots has four edges: a fifth accepted pair closes a cycle.
+    ASSERT_TRUE(op.wait_for([&] { return aligned(op, ids) && accepted_pairs(op).size() >= 5; }, 2 * kMergeTimeout))
+        << server->log();
+    ASSERT_TRUE(settled(op, 6s, kMergeTimeout)) << server->log();
+  }
+  ASSERT_TRUE(aligned(op, ids));
+  const auto poses = op.poses();
+  for (std::size_t i = 1; i < ids.size(); ++i) {
+    const auto& pose = poses.at(ids[i]);
+    EXPECT_LT(rotation_error_deg(f.truth(0, i), pose.T_global_robot), kMaxRotationDeg) << ids[i];
+    EXPECT_LT(translation_error_m(f.truth(0, i), pose.T_global_robot), kMaxTranslationM) << ids[i];
+  }
+  EXPECT_GE(extra_edges(op), 1u);
+  RecordProperty("accepted_pairs", static_cast<int>(accepted_pairs(op).size()));
+  RecordProperty("extra_edges", static_cast<int>(extra_edges(op)));
+
+  // The graph as stored (real SQLite file): at least five edges over five robots, all accepted
+  // by the cycle checks, each with its quality and information matrix.
+  EXPECT_EQ(server->kill(SIGKILL), 128 + SIGKILL);
+  clean_shm();
+  server::StoreConfig store_config;
+  store_config.state_dir = dir + "/state";
+  const server::StoreSnapshot before = server::Store(store_config).load();
+  ASSERT_GE(before.edges.size(), 5u);
+  for (std::size_t k = 0; k < before.edges.size(); ++k) {
+    const server::Edge& e = before.edges[k];
+    EXPECT_EQ(before.verdicts[k].state, "accepted") << e.target << "<-" << e.source << ": " << before.verdicts[k].reason;
+    EXPECT_GT(e.inliers, 0u);
+    EXPECT_GT(e.overlap, 0.0);
+    EXPECT_GT(e.information.trace(), 0.0);
+  }
+
+  // Restarted with the same state and no robot speaking: the same poses, and not one merge run.
+  auto restarted = start_server();
+  FleetListener after(domain);
+  ASSERT_TRUE(after.wait_for([&] { return aligned(after, ids) && after.status().updates_received == 0 &&
+                                          !after.status().accepted.empty(); }, 60s))
+      << restarted->log();
+  for (const auto& id : ids) {
+    // The same optimum, solved cold instead of warm: equal to the solver's tolerance.
+    EXPECT_LT((poses.at(id).T_global_robot - after.poses().at(id).T_global_robot).norm(), 1e-6) << id;
+  }
+  std::this_thread::sleep_for(3s);  // time for any (unwanted) merge to start
+  EXPECT_EQ(after.status().merges_run, 0u) << restarted->log();
+  EXPECT_EQ(restarted->kill(SIGTERM), 0);
+  const server::StoreSnapshot again = server::Store(store_config).load();
+  ASSERT_EQ(again.edges.size(), before.edges.size());
+  for (std::size_t k = 0; k < before.edges.size(); ++k) {
+    EXPECT_EQ(again.edges[k].target, before.edges[k].target);
+    EXPECT_EQ(again.edges[k].source, before.edges[k].source);
+    EXPECT_TRUE(again.edges[k].T_target_source == before.edges[k].T_target_source);
+    EXPECT_TRUE(again.edges[k].information == before.edges[k].information);
+  }
+  EXPECT_NE(restarted->log().find("extra pairs: 0 tried"), std::string::npos) << restarted->log();
 }
 
 }  // namespace

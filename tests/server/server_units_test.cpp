@@ -8,7 +8,9 @@
 #include <mutex>
 
 #include <gtest/gtest.h>
+#include <sqlite3.h>
 
+#include "five_robots.hpp"
 #include "fleet.hpp"
 #include "server_process.hpp"
 #include "mapmerge/map/crop.hpp"
@@ -123,6 +125,89 @@ TEST(Registry, WrongEdgeIsRejectedByCycleConsistency) {
   EXPECT_FALSE(rejected[0].reason.empty());
 }
 
+/// The alignment turned by angle_deg about `axis` (source frame) at the edge's pivot: the
+/// corridor matched the wrong way round.
+Edge turned(Edge e, const Eigen::Vector3d& axis, double angle_deg) {
+  Eigen::Matrix4d turn = Eigen::Matrix4d::Identity();
+  turn.topLeftCorner<3, 3>() = Eigen::AngleAxisd(angle_deg * M_PI / 180.0, axis.normalized()).toRotationMatrix();
+  Eigen::Matrix4d to = Eigen::Matrix4d::Identity(), back = Eigen::Matrix4d::Identity();
+  to.topRightCorner<3, 1>() = e.pivot_source;
+  back.topRightCorner<3, 1>() = -e.pivot_source;
+  e.T_target_source = e.T_target_source * to * turn * back;
+  return e;
+}
+
+// The server's wrapper of the fleet pose graph on real alignments: five robots cut from geb079
+// (five_robots.hpp), every overlapping pair aligned by merge_ops (global search; where it fails,
+// a refinement from a displaced truth, as for an extra pair), edges made by make_edge.
+TEST(Registry, RealFleetAWrongEdgeIsRejectedWithEvidenceAndARobotWithOnlyWrongEdgesIsUnknown) {
+  const test::FiveRobots& f = test::FiveRobots::get();
+  Registry r;
+  const align::AlignConfig config;
+  std::vector<std::shared_ptr<const align::PreparedMap>> prepared;
+  for (std::size_t i = 0; i < f.ids.size(); ++i) {
+    RobotRecord rec;
+    rec.robot_id = f.ids[i];
+    rec.session_id = "a";
+    rec.tree = f.maps[i];
+    rec.content_hash = i + 1;
+    r.put_map(rec);
+    std::string error;
+    prepared.push_back(prepare(f.maps[i], config, error));
+    ASSERT_TRUE(prepared.back()) << error;
+  }
+  r.claim_reference("r3");
+  std::map<std::pair<int, int>, Edge> edges;
+  for (const auto& [t, s] : f.overlapping) {
+    align::AlignResult res = align_global(*prepared[t], *prepared[s], config);
+    if (!res.accepted) {
+      res = align_local(*prepared[t], *prepared[s], f.truth(t, s) * align::make_transform(0.3, -0.3, 0.2, 1, -1, 3),
+                        config);
+    }
+    ASSERT_TRUE(res.accepted) << f.ids[t] << " <- " << f.ids[s] << ": " << res.reason;
+    edges[{t, s}] = make_edge(*r.get(f.ids[t]), *r.get(f.ids[s]), res);
+    r.put_edge(edges[{t, s}]);
+  }
+  const auto within_tolerance = [&](const std::string& what) {
+    const auto poses = r.poses();
+    for (const auto& [id, pose] : poses) {
+      const std::size_t i = static_cast<std::size_t>(id[1] - '1');
+      EXPECT_LT(test::rotation_error_deg(f.truth(2, i), pose.T_global_robot), 1.0) << what << " " << id;
+      EXPECT_LT(test::translation_error_m(f.truth(2, i), pose.T_global_robot), 0.2) << what << " " << id;
+    }
+    return poses.size();
+  };
+  EXPECT_EQ(within_tolerance("real edges"), 5u);
+  EXPECT_TRUE(r.rejected_edges().empty());
+
+  // r2 <- r3 matched the corridor the wrong way round: rejected, its loops as evidence, and the
+  // five robots still placed (r2 and r3 have other loops).
+  r.put_edge(turned(edges[{1, 2}], f.up(2), 120.0));
+  auto rejected = r.rejected_edges();
+  ASSERT_EQ(rejected.size(), 1u);
+  EXPECT_EQ(rejected[0].target, "r2");
+  EXPECT_EQ(rejected[0].source, "r3");
+  EXPECT_NE(rejected[0].reason.find("cycle consistency"), std::string::npos) << rejected[0].reason;
+  EXPECT_NE(rejected[0].evidence.find("loop r2|r3"), std::string::npos) << rejected[0].evidence;
+  EXPECT_NE(rejected[0].evidence.find("open by"), std::string::npos) << rejected[0].evidence;
+  EXPECT_EQ(within_tolerance("one wrong edge"), 5u);
+  EXPECT_EQ(r.status("r2"), RobotStatus::kAligned);
+
+  // Both of r5's edges wrong: r5 goes back to unknown rather than keeping a wrong pose.
+  r.put_edge(turned(edges[{2, 4}], f.up(4), 150.0));
+  r.put_edge(turned(edges[{3, 4}], f.up(4), 100.0));
+  EXPECT_EQ(r.status("r5"), RobotStatus::kUnknown);
+  EXPECT_EQ(r.poses().count("r5"), 0u);
+  EXPECT_EQ(within_tolerance("r5's edges wrong"), 4u);
+  rejected = r.rejected_edges();
+  EXPECT_EQ(rejected.size(), 3u);
+  // Repaired (r5's map re-aligned): it comes back.
+  r.put_edge(edges[{2, 4}]);
+  r.put_edge(edges[{3, 4}]);
+  EXPECT_EQ(r.status("r5"), RobotStatus::kAligned);
+  EXPECT_EQ(within_tolerance("repaired"), 5u);
+}
+
 TEST(Registry, NewSessionDropsTheRobotsAlignments) {
   Registry r;
   auto tree = std::make_shared<const octomap::OcTree>(0.1);
@@ -196,6 +281,49 @@ TEST(Scheduler, CoalescesAFastPublisherAndNeverRunsARobotTwiceAtOnce) {
   EXPECT_LE(st.max_queued, 1u);               // the queue holds robots, not updates
 }
 
+TEST(Scheduler, IdleWorkRunsOnSpareThreadsAndNeverStarvesARobot) {
+  std::mutex m;
+  std::condition_variable cv;
+  bool robot_done = false;
+  int idle_running = 0, idle_max = 0, handed_out = 0;
+  bool robot_ran_during_idle = false;
+  Scheduler s(
+      2,
+      [&](const std::string&, std::optional<MapSample>, bool) {
+        std::lock_guard<std::mutex> lock(m);
+        robot_ran_during_idle = idle_running > 0;
+        robot_done = true;
+        cv.notify_all();
+      },
+      [&]() -> std::function<void()> {
+        std::lock_guard<std::mutex> lock(m);
+        if (handed_out == 3) return {};
+        ++handed_out;
+        return [&] {
+          std::unique_lock<std::mutex> lock(m);
+          idle_max = std::max(idle_max, ++idle_running);
+          cv.notify_all();
+          cv.wait_for(lock, 20s, [&] { return robot_done; });  // holds a thread until the robot ran
+          --idle_running;
+        };
+      });
+  s.kick_idle();
+  {
+    std::unique_lock<std::mutex> lock(m);
+    ASSERT_TRUE(cv.wait_for(lock, 10s, [&] { return idle_running == 1; }));
+  }
+  MapSample sample;
+  sample.robot_id = "r1";
+  s.submit(sample);  // must run on the other thread while the idle job holds its own
+  const auto deadline = std::chrono::steady_clock::now() + 30s;
+  while (!s.idle() && std::chrono::steady_clock::now() < deadline) std::this_thread::sleep_for(10ms);
+  ASSERT_TRUE(s.idle());
+  EXPECT_TRUE(robot_ran_during_idle);
+  EXPECT_EQ(idle_max, 1);  // two threads: at most one idle job at a time
+  EXPECT_EQ(s.stats().idle_jobs_run, 3u);  // asked again after each job until none is left
+  EXPECT_EQ(s.stats().jobs_run, 1u);
+}
+
 TEST(Store, SurvivesReopeningAndKeepsTheLastOfEverything) {
   const std::string dir = test::temp_dir("store_unit");
   StoreConfig cfg;
@@ -234,6 +362,74 @@ TEST(Store, SurvivesReopeningAndKeepsTheLastOfEverything) {
   EXPECT_EQ(snap.poses[0].state, PoseState::kAligned);
 }
 
+TEST(Store, EdgesKeepTheirQualityVerdictAndTheirTries) {
+  StoreConfig cfg;
+  cfg.state_dir = test::temp_dir("store_edges");
+  Edge e = quality_edge("r1", "r2", align::make_transform(1, 2, 3, 10, 20, 30));
+  e.pivot_source = Eigen::Vector3d(0.5, -1.5, 0.25);
+  for (int i = 0; i < 6; ++i) e.information(i, i) = 100.0 * (i + 1);
+  e.information(0, 4) = e.information(4, 0) = 3.5;
+  const EdgeVerdict v{"r1", "r2", "rejected", "cycle consistency: ...", "loop r1|r2 > r2|r3 > r3|r1 open by 90 deg"};
+  const PairAttempt tried{"r2", "r3", "extra", 0xFFFFFFFFFFFFFFF0ULL, 42, false, "no hypothesis", 1.5e9};
+  {
+    Store s(cfg);
+    s.save_alignment("r1", {e}, {v});
+    s.save_attempt(tried);
+    s.save_attempt(PairAttempt{"r2", "r3", "search", 1, 2, true, "", 1.6e9});  // another kind: kept apart
+  }
+  const StoreSnapshot snap = Store(cfg).load();
+  ASSERT_EQ(snap.edges.size(), 1u);
+  const Edge& got = snap.edges[0];
+  EXPECT_TRUE(got.T_target_source == e.T_target_source);
+  EXPECT_EQ(got.inliers, e.inliers);
+  EXPECT_EQ(got.overlap, e.overlap);
+  EXPECT_EQ(got.fitness, e.fitness);
+  EXPECT_TRUE(got.pivot_source == e.pivot_source);
+  EXPECT_TRUE(got.information == e.information);
+  ASSERT_EQ(snap.verdicts.size(), 1u);
+  EXPECT_EQ(snap.verdicts[0].state, "rejected");
+  EXPECT_EQ(snap.verdicts[0].reason, v.reason);
+  EXPECT_EQ(snap.verdicts[0].evidence, v.evidence);
+  ASSERT_EQ(snap.attempts.size(), 2u);
+  const PairAttempt& a = snap.attempts[0].kind == "extra" ? snap.attempts[0] : snap.attempts[1];
+  EXPECT_EQ(a.hash_a, tried.hash_a);  // 64-bit hashes survive the signed column
+  EXPECT_EQ(a.hash_b, 42u);
+  EXPECT_FALSE(a.accepted);
+  EXPECT_EQ(a.reason, "no hypothesis");
+}
+
+TEST(Store, AStoreOfTheFirstSchemaIsUpgradedAndItsEdgesKept) {
+  StoreConfig cfg;
+  cfg.state_dir = test::temp_dir("store_old_schema");
+  const Eigen::Matrix4d T = align::make_transform(1, 2, 3, 10, 20, 30);
+  {
+    sqlite3* db = nullptr;
+    ASSERT_EQ(sqlite3_open((cfg.state_dir + "/state.sqlite").c_str(), &db), SQLITE_OK);
+    ASSERT_EQ(sqlite3_exec(db,
+                           "CREATE TABLE edges(target TEXT, source TEXT, T BLOB NOT NULL, fitness REAL, "
+                           "PRIMARY KEY(target, source));",
+                           nullptr, nullptr, nullptr),
+              SQLITE_OK);
+    sqlite3_stmt* st = nullptr;
+    sqlite3_prepare_v2(db, "INSERT INTO edges VALUES('r1','r2',?,0.03)", -1, &st, nullptr);
+    sqlite3_bind_blob(st, 1, T.data(), 16 * sizeof(double), SQLITE_TRANSIENT);
+    ASSERT_EQ(sqlite3_step(st), SQLITE_DONE);
+    sqlite3_finalize(st);
+    sqlite3_close(db);
+  }
+  const StoreSnapshot snap = Store(cfg).load();
+  ASSERT_EQ(snap.edges.size(), 1u);
+  EXPECT_TRUE(snap.edges[0].T_target_source == T);
+  EXPECT_EQ(snap.edges[0].inliers, 0u);                 // unknown: the registry's typical-edge fallback
+  EXPECT_TRUE(snap.edges[0].information.isZero(0.0));
+  Registry r;
+  add_robots(r, 2);
+  r.put_edge(snap.edges[0]);
+  EXPECT_EQ(r.status("r2"), RobotStatus::kAligned);
+  Store(cfg).save_alignment("r1", snap.edges);  // writes the new columns
+  EXPECT_EQ(Store(cfg).load().edges.size(), 1u);
+}
+
 TEST(Store, UnwritableDirectoryIsAClearError) {
   StoreConfig cfg;
   cfg.state_dir = "/proc/mapmerge-cannot-exist";
@@ -253,6 +449,22 @@ TEST(Config, ReadsSectionsAndRejectsUnknownKeys) {
   EXPECT_THROW(parse_server_config("network: {domain: 200}\n"), align::ConfigError);
   EXPECT_THROW(parse_server_config("merge: {threads: many}\n"), align::ConfigError);
   EXPECT_EQ(parse_server_config("").merge.threads, 2);
+}
+
+TEST(Config, ExtraPairSettings) {
+  const ServerConfig d = parse_server_config("");
+  EXPECT_TRUE(d.merge.extra_pairs);
+  EXPECT_EQ(d.merge.extra_max_jobs, 0);
+  const ServerConfig c = parse_server_config(
+      "merge: {extra_pairs: false, extra_min_overlap: 0.25, extra_overlap_samples: 500, extra_global_fallback: false, "
+      "extra_max_jobs: 3}\n");
+  EXPECT_FALSE(c.merge.extra_pairs);
+  EXPECT_DOUBLE_EQ(c.merge.extra_min_overlap, 0.25);
+  EXPECT_EQ(c.merge.extra_overlap_samples, 500);
+  EXPECT_FALSE(c.merge.extra_global_fallback);
+  EXPECT_EQ(c.merge.extra_max_jobs, 3);
+  EXPECT_THROW(parse_server_config("merge: {extra_min_overlap: 1.5}\n"), align::ConfigError);
+  EXPECT_THROW(parse_server_config("merge: {extra_overlap_samples: 0}\n"), align::ConfigError);
 }
 
 TEST(Config, SecuritySettings) {

@@ -28,6 +28,14 @@ struct MergeConfig {
   bool refine_known = true;          ///< refine a known robot's transform when its map changes
   double refine_republish_translation = 0.02;  ///< a refinement moving a robot more than this republishes [m]
   double refine_republish_rotation_deg = 0.1;  ///< ... or turning it more than this [deg]
+  bool extra_pairs = true;           ///< on spare threads, align aligned robots that share no edge yet but
+                                     ///< overlap (by their pose estimates), so the pose graph gets cycles
+  double extra_min_overlap = 0.1;    ///< estimated share of the smaller map's occupied voxels on the
+                                     ///< other's for an extra pair [0..1]
+  int extra_overlap_samples = 1000;  ///< occupied voxels sampled by the overlap estimate [count]
+  bool extra_global_fallback = true;  ///< an extra pair whose local refinement (from the pose estimates)
+                                      ///< fails gets a global search
+  int extra_max_jobs = 0;            ///< extra pairs aligned at once [count]; 0: threads - 1 (at least 1)
 };
 
 /// When the global map and poses go out (read by the server's main loop).

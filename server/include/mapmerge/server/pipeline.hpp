@@ -3,15 +3,23 @@
 ///   ingest (decode -> validate -> prepare -> registry -> store) -> place, where place is
 ///   reference (defines `global`) | refine (transform known: local only) | search (unknown:
 ///   global alignment against the aligned robots, largest first).
+/// On spare capacity (Scheduler idle work): extra pairs = aligned robots that share no edge but
+/// overlap by their pose estimates, refined locally from those estimates (global search as
+/// fallback), so the fleet pose graph gets cycles. A pair is tried once per pair of maps.
 
 #include <atomic>
 #include <cstdint>
 #include <deque>
 #include <functional>
+#include <map>
 #include <mutex>
 #include <optional>
+#include <set>
 #include <string>
+#include <utility>
 #include <vector>
+
+#include <Eigen/Core>
 
 #include "mapmerge/server/config.hpp"
 #include "mapmerge/server/messages.hpp"
@@ -24,6 +32,8 @@ struct PipelineCounters {
   std::uint64_t updates_accepted = 0;
   std::uint64_t updates_rejected = 0;
   std::uint64_t merges_run = 0;
+  std::uint64_t extra_pairs_tried = 0;   ///< extra pairs aligned (refine, maybe global) [count]
+  std::uint64_t extra_edges_added = 0;   ///< of which accepted: edges beyond what placing needed [count]
 };
 
 class Pipeline {
@@ -35,6 +45,7 @@ class Pipeline {
     /// Run refine_job(robot) as a turn of its own (so a known robot's next map is fused while its
     /// previous one is refined); without it the refinement runs inline.
     std::function<void(const std::string& job)> refine;
+    std::function<void()> more_idle_work;                 ///< extra pairs may have appeared
   };
 
   /// The scheduler key of `robot`'s refinement turn (ids cannot contain '#').
@@ -48,6 +59,11 @@ class Pipeline {
   void process(const std::string& robot, std::optional<MapSample> map, bool retry);
   /// Installs a map from the store at start-up (no persistence, no alignment).
   bool restore(const MapSample& map);
+  /// Installs the pairs tried before a restart (not tried again while their maps are the same).
+  void restore_attempts(const std::vector<PairAttempt>& attempts);
+  /// Idle work for the scheduler: aligns the best extra pair (largest estimated overlap), or an
+  /// empty function when there is none. Thread-safe; a pair is handed out once at a time.
+  std::function<void()> next_extra_pair();
 
   PipelineCounters counters() const;
   std::vector<MergeReportOut> recent_merges() const;
@@ -68,12 +84,38 @@ class Pipeline {
   /// a retry of every unaligned robot.
   void on_new_alignment(const std::string& robot, bool joined);
   void report(MergeReportOut report);
+  void persist_edges();
+
+  /// An extra pair: target (the larger map) <- source, with the pose estimates' T_target_source.
+  struct ExtraPair {
+    std::string target, source;
+    std::uint64_t target_revision = 0, source_revision = 0;
+    std::size_t target_hash = 0, source_hash = 0;
+    Eigen::Matrix4d T_target_source = Eigen::Matrix4d::Identity();
+    double overlap = 0.0;
+  };
+  std::optional<ExtraPair> pick_extra_pair();
+  double cached_overlap(const RobotRecord& target, const RobotRecord& source, const Eigen::Matrix4d& T_target_source);
+  void align_extra_pair(const ExtraPair& pair);
+  /// A try of (a, b) of this kind ("search", "extra") with both maps as they are now is on record.
+  bool attempted(const RobotRecord& a, const RobotRecord& b, const std::string& kind) const;
+  void record_attempt(const RobotRecord& a, const RobotRecord& b, const std::string& kind, bool accepted,
+                      const std::string& reason);
 
   const ServerConfig& config_;
   Registry& registry_;
   Store* store_;
   Hooks hooks_;
-  std::atomic<std::uint64_t> accepted_{0}, rejected_{0}, merges_{0};
+  std::atomic<std::uint64_t> accepted_{0}, rejected_{0}, merges_{0}, extra_tried_{0}, extra_added_{0};
+  struct OverlapEstimate {
+    std::size_t target_hash = 0, source_hash = 0;
+    Eigen::Matrix4d T_target_source = Eigen::Matrix4d::Identity();
+    double overlap = 0.0;
+  };
+  mutable std::mutex pairs_mutex_;  ///< guards the three below
+  std::map<std::string, PairAttempt> attempts_;  ///< by "robot_a|robot_b|kind", a < b
+  std::set<std::pair<std::string, std::string>> in_progress_;            ///< extra pairs being aligned
+  std::map<std::pair<std::string, std::string>, OverlapEstimate> overlaps_;  ///< by (target, source)
   mutable std::mutex reports_mutex_;
   std::deque<MergeReportOut> reports_;
 };

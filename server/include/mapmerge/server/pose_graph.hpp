@@ -3,6 +3,7 @@
 /// T_global_robot by composing the transforms along the best path (edges weighted by fitness).
 
 #include <cstddef>
+#include <cstdint>
 #include <map>
 #include <string>
 #include <vector>
@@ -20,6 +21,32 @@ struct Edge {
   std::size_t inliers = 0;  ///< inlier pairs of the alignment [count]; 0: unknown (restored edge)
   double overlap = 0.0;     ///< estimated share of points seen by both maps [0..1]
   Eigen::Vector3d pivot_source = Eigen::Vector3d::Zero();  ///< centre of the overlap, source frame [m]
+  /// Inverse covariance of the edge's error [rho (m); phi (rad)] (mapmerge::graph convention);
+  /// all zero: not known (an edge from an old store), derived from the numbers above.
+  Eigen::Matrix<double, 6, 6> information = Eigen::Matrix<double, 6, 6>::Zero();
+};
+
+/// What the fleet pose graph made of an edge (stored with it, reported on the status topic).
+struct EdgeVerdict {
+  std::string target;
+  std::string source;
+  std::string state;     ///< "accepted", "rejected" or "not_connected"
+  std::string reason;    ///< why rejected (empty otherwise)
+  std::string evidence;  ///< rejected: the worst loops through it, how far they stay open
+};
+
+/// One try at aligning a pair: not repeated while both maps are the same. robot_a < robot_b;
+/// the hashes are those of the maps' payload bytes at the try.
+struct PairAttempt {
+  std::string robot_a;
+  std::string robot_b;
+  std::string kind;        ///< "search" (global, placing an unknown robot) or "extra" (refine from
+                           ///< the pose estimates, global search as fallback)
+  std::uint64_t hash_a = 0;
+  std::uint64_t hash_b = 0;
+  bool accepted = false;
+  std::string reason;      ///< why not accepted
+  double stamp_unix = 0.0;  ///< [s since epoch]
 };
 
 struct GlobalPose {

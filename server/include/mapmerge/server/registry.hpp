@@ -77,11 +77,11 @@ class Registry {
   /// pose graph (mapmerge::graph; cycle-inconsistent edges left out, a robot whose edges are all
   /// rejected is not connected), or, when the graph has no valid solution, the composed path.
   std::map<std::string, GlobalPose> poses() const;
-  /// An alignment the pose graph rejected (inconsistent with the rest of the graph).
-  struct RejectedEdge {
-    std::string target, source, reason;
-  };
-  std::vector<RejectedEdge> rejected_edges() const;
+  /// What the pose graph made of every edge (accepted, rejected with reason and evidence, or
+  /// not connected to the reference), sorted by (target, source).
+  std::vector<EdgeVerdict> edge_verdicts() const;
+  /// The edges the pose graph rejected (inconsistent with the rest of the graph).
+  std::vector<EdgeVerdict> rejected_edges() const;
   RobotStatus status(const std::string& robot) const;
 
  private:
