@@ -29,13 +29,6 @@ std::pair<std::string, std::string> ordered(const std::string& a, const std::str
   return a < b ? std::make_pair(a, b) : std::make_pair(b, a);
 }
 
-/// Rotation angle [deg] and translation [m] between two rigid transforms.
-std::pair<double, double> difference(const Eigen::Matrix4d& a, const Eigen::Matrix4d& b) {
-  const Eigen::Matrix4d d = rigid_inverse(a) * b;
-  const double c = std::clamp((d.topLeftCorner<3, 3>().trace() - 1.0) / 2.0, -1.0, 1.0);
-  return {std::acos(c) * 180.0 / M_PI, d.topRightCorner<3, 1>().norm()};
-}
-
 constexpr double kOverlapReuseDeg = 5.0;  ///< an overlap estimate holds while the pair's relative pose moves less [deg]
 constexpr double kOverlapReuseM = 0.5;    ///< ... and less than this [m]
 
@@ -316,8 +309,9 @@ double Pipeline::cached_overlap(const RobotRecord& target, const RobotRecord& so
     const auto it = overlaps_.find(key);
     if (it != overlaps_.end() && it->second.target_hash == target.content_hash &&
         it->second.source_hash == source.content_hash) {
-      const auto [deg, m] = difference(it->second.T_target_source, T_target_source);
-      if (deg < kOverlapReuseDeg && m < kOverlapReuseM) return it->second.overlap;
+      if (!server::moved_noticeably(it->second.T_target_source, T_target_source, kOverlapReuseM, kOverlapReuseDeg)) {
+        return it->second.overlap;
+      }
     }
   }
   const double overlap = estimate_overlap(*target.tree, *source.tree, T_target_source,

@@ -300,10 +300,10 @@ TEST(Scheduler, IdleWorkRunsOnSpareThreadsAndNeverStarvesARobot) {
         if (handed_out == 3) return {};
         ++handed_out;
         return [&] {
-          std::unique_lock<std::mutex> lock(m);
+          std::unique_lock<std::mutex> hold(m);
           idle_max = std::max(idle_max, ++idle_running);
           cv.notify_all();
-          cv.wait_for(lock, 20s, [&] { return robot_done; });  // holds a thread until the robot ran
+          cv.wait_for(hold, 20s, [&] { return robot_done; });  // holds a thread until the robot ran
           --idle_running;
         };
       });
