@@ -14,7 +14,7 @@
 #include <Eigen/Geometry>
 #include <octomap/OcTree.h>
 
-#include "mapmerge/align/map_cut.hpp"
+#include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/map_io.hpp"
 
 namespace mapmerge::test {
@@ -46,12 +46,12 @@ struct FiveRobots {
     f.world = read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/geb079.bt");
     const double x0[] = {-8.0, -2.5, 3.0, 8.5, 14.0};
     const double x1[] = {8.0, 13.5, 19.0, 24.5, 31.0};
-    f.T_robot_world = {align::make_transform(1, 2, 0, 0, 0, 30), align::make_transform(-4, 7, 0.3, -3, 2, 155),
-                       align::make_transform(5, -3, 0.2, 2, -1, -70), align::make_transform(-2, -6, -0.1, 1, 3, 100),
-                       align::make_transform(3, 4, 0.1, -2, -1, -140)};
+    f.T_robot_world = {mapmerge::paper_transform(1, 2, 0, 0, 0, 30), mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155),
+                       mapmerge::paper_transform(5, -3, 0.2, 2, -1, -70), mapmerge::paper_transform(-2, -6, -0.1, 1, 3, 100),
+                       mapmerge::paper_transform(3, 4, 0.1, -2, -1, -140)};
     for (std::size_t i = 0; i < 5; ++i) {
       f.boxes.emplace_back(Eigen::Vector3d(x0[i], -8, -1), Eigen::Vector3d(x1[i], 8, 4));
-      f.maps.push_back(align::cut_and_move(*f.world, f.boxes[i], f.T_robot_world[i]));
+      f.maps.push_back(crop_and_transform(*f.world, f.boxes[i], Eigen::Isometry3d(f.T_robot_world[i])));
     }
     for (int i = 0; i < 5; ++i)
       for (int j = i + 1; j < 5; ++j)

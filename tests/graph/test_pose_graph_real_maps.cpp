@@ -52,7 +52,7 @@ const std::vector<RealEdge>& real_edges() {
     for (const auto& [t, s] : f.overlapping) {
       ma::AlignResult r = ma::align(prepared[t], prepared[s], config);
       if (!r.accepted) {
-        const Eigen::Matrix4d guess = f.truth(t, s) * ma::make_transform(0.3, -0.3, 0.2, 1, -1, 3);
+        const Eigen::Matrix4d guess = f.truth(t, s) * mapmerge::paper_transform(0.3, -0.3, 0.2, 1, -1, 3);
         r = ma::refine(prepared[t], prepared[s], guess, config);
       }
       if (!r.accepted) continue;  // the tests check which pairs made it

@@ -161,7 +161,7 @@ TEST(Registry, RealFleetAWrongEdgeIsRejectedWithEvidenceAndARobotWithOnlyWrongEd
   for (const auto& [t, s] : f.overlapping) {
     align::AlignResult res = align_global(*prepared[t], *prepared[s], config);
     if (!res.accepted) {
-      res = align_local(*prepared[t], *prepared[s], f.truth(t, s) * align::make_transform(0.3, -0.3, 0.2, 1, -1, 3),
+      res = align_local(*prepared[t], *prepared[s], f.truth(t, s) * mapmerge::paper_transform(0.3, -0.3, 0.2, 1, -1, 3),
                         config);
     }
     ASSERT_TRUE(res.accepted) << f.ids[t] << " <- " << f.ids[s] << ": " << res.reason;
@@ -365,7 +365,7 @@ TEST(Store, SurvivesReopeningAndKeepsTheLastOfEverything) {
 TEST(Store, EdgesKeepTheirQualityVerdictAndTheirTries) {
   StoreConfig cfg;
   cfg.state_dir = test::temp_dir("store_edges");
-  Edge e = quality_edge("r1", "r2", align::make_transform(1, 2, 3, 10, 20, 30));
+  Edge e = quality_edge("r1", "r2", mapmerge::paper_transform(1, 2, 3, 10, 20, 30));
   e.pivot_source = Eigen::Vector3d(0.5, -1.5, 0.25);
   for (int i = 0; i < 6; ++i) e.information(i, i) = 100.0 * (i + 1);
   e.information(0, 4) = e.information(4, 0) = 3.5;
@@ -401,7 +401,7 @@ TEST(Store, EdgesKeepTheirQualityVerdictAndTheirTries) {
 TEST(Store, AStoreOfTheFirstSchemaIsUpgradedAndItsEdgesKept) {
   StoreConfig cfg;
   cfg.state_dir = test::temp_dir("store_old_schema");
-  const Eigen::Matrix4d T = align::make_transform(1, 2, 3, 10, 20, 30);
+  const Eigen::Matrix4d T = mapmerge::paper_transform(1, 2, 3, 10, 20, 30);
   {
     sqlite3* db = nullptr;
     ASSERT_EQ(sqlite3_open((cfg.state_dir + "/state.sqlite").c_str(), &db), SQLITE_OK);
