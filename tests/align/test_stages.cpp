@@ -162,3 +162,17 @@ TEST(Submodels, SpiralFromTheBorderCoversEveryPoint) {
   for (const auto& b : ma::make_submodels(pts, c, 0.1)) members += b.members.size();
   EXPECT_GT(members, 2 * pts.size());
 }
+
+TEST(CropAndTransform, BoxLargerThanTheMapKeepsEveryVoxel) {
+  // The bench's z slab and "everything" boxes reach far outside the octree's key range.
+  const auto tree = mapmerge::read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/geb079.bt");
+  const Eigen::AlignedBox3d all(Eigen::Vector3d::Constant(-1e6), Eigen::Vector3d::Constant(1e6));
+  const auto copy = mapmerge::crop_and_transform(*tree, all, Eigen::Isometry3d::Identity());
+  EXPECT_EQ(mapmerge::count_occupied(*copy, all), mapmerge::count_occupied(*tree, all));
+  const Eigen::AlignedBox3d slab(Eigen::Vector3d(-1e6, -1e6, 0.0), Eigen::Vector3d(1e6, 1e6, 1.0));
+  const auto part = mapmerge::crop_and_transform(*tree, slab, Eigen::Isometry3d::Identity());
+  EXPECT_EQ(mapmerge::count_occupied(*part, all), mapmerge::count_occupied(*tree, slab));
+  EXPECT_GT(mapmerge::count_occupied(*part, all), 0U);
+  const Eigen::AlignedBox3d far(Eigen::Vector3d::Constant(1e5), Eigen::Vector3d::Constant(1e6));
+  EXPECT_EQ(mapmerge::crop_and_transform(*tree, far, Eigen::Isometry3d::Identity())->size(), 0U);
+}

@@ -87,10 +87,17 @@ std::unique_ptr<octomap::OcTree> crop_and_transform(const octomap::OcTree& tree,
   out->setClampingThresMax(tree.getClampingThresMax());
   out->setOccupancyThres(tree.getOccupancyThres());
   const Eigen::Isometry3d T_in_out = T_out_in.inverse();
-  const octomap::point3d bmin(static_cast<float>(box.min().x()), static_cast<float>(box.min().y()),
-                              static_cast<float>(box.min().z()));
-  const octomap::point3d bmax(static_cast<float>(box.max().x()), static_cast<float>(box.max().y()),
-                              static_cast<float>(box.max().z()));
+  // The leaf iterator needs a box inside the tree's key range: clamp to the map's extent.
+  double x0, y0, z0, x1, y1, z1;
+  tree.getMetricMin(x0, y0, z0);
+  tree.getMetricMax(x1, y1, z1);
+  const Eigen::AlignedBox3d inside = box.intersection(
+      Eigen::AlignedBox3d(Eigen::Vector3d(x0, y0, z0), Eigen::Vector3d(x1, y1, z1)));
+  if (tree.size() == 0 || inside.isEmpty()) return out;
+  const octomap::point3d bmin(static_cast<float>(inside.min().x()), static_cast<float>(inside.min().y()),
+                              static_cast<float>(inside.min().z()));
+  const octomap::point3d bmax(static_cast<float>(inside.max().x()), static_cast<float>(inside.max().y()),
+                              static_cast<float>(inside.max().z()));
   for (auto it = tree.begin_leafs_bbx(bmin, bmax), end = tree.end_leafs_bbx(); it != end; ++it) {
     const float value = it->getLogOdds();
     const double size = it.getSize();
