@@ -2,7 +2,8 @@
 // optimised pose graph for 4, 8 and 16 robots on the real fr_079 map (fleet_sim.hpp), with and
 // without one wrong edge, and the cost of one optimisation for 16 robots (cold and warm).
 //
-//   bench_graph [--trials N] [--timing-runs N] [--timing-only 1]
+//   bench_graph [--trials N] [--timing-runs N] [--timing-only 1] [--real 1]
+// --real 1 adds fleets cut from geb079 whose edges are real alignments (core/align).
 // Prints Markdown (the tables of bench/results/graph.md).
 #include <algorithm>
 #include <chrono>
@@ -14,7 +15,10 @@
 #include <vector>
 
 #include "fleet_sim.hpp"
+#include "mapmerge/align/align.hpp"
+#include "mapmerge/map/crop.hpp"
 #include "mapmerge/graph/pose_graph.hpp"
+#include "mapmerge/map/map_io.hpp"
 
 namespace mg = mapmerge::graph;
 namespace sim = mapmerge::graph::sim;
@@ -25,6 +29,7 @@ struct Options {
   int trials = 50;       // seeded fleets per robot count
   int timing_runs = 200;  // optimisations timed for 16 robots
   bool timing_only = false;
+  bool real = false;      // also the fleets on real alignments (geb079; minutes of CPU)
 };
 
 Options parse(int argc, char** argv) {
@@ -34,6 +39,7 @@ Options parse(int argc, char** argv) {
     if (a == "--trials") o.trials = std::atoi(argv[i + 1]);
     else if (a == "--timing-runs") o.timing_runs = std::atoi(argv[i + 1]);
     else if (a == "--timing-only") o.timing_only = std::atoi(argv[i + 1]) != 0;
+    else if (a == "--real") o.real = std::atoi(argv[i + 1]) != 0;
   }
   return o;
 }
@@ -218,6 +224,122 @@ void timing(const Options& o) {
               percentile(cold_iterations, 0.5), percentile(warm_iterations, 0.5));
 }
 
+// ---- real alignments -----------------------------------------------------------------------
+
+struct RealFleet {
+  std::vector<std::string> ids;
+  std::vector<Eigen::Isometry3d> T_robot_world;
+  int global_edges = 0, refined_edges = 0, failed_pairs = 0, wrong_edges = 0;
+  std::vector<std::string> wrong_ids;
+  Eigen::Isometry3d truth(int a, int b) const { return T_robot_world[a] * T_robot_world[b].inverse(); }
+};
+
+Eigen::AlignedBox3d box_of(const octomap::OcTree& t) {
+  double x0, y0, z0, x1, y1, z1;
+  t.getMetricMin(x0, y0, z0);
+  t.getMetricMax(x1, y1, z1);
+  return Eigen::AlignedBox3d(Eigen::Vector3d(x0, y0, z0), Eigen::Vector3d(x1, y1, z1));
+}
+
+/// N robots along geb079 (x from -8 to 31 m), each mapping `length` m of the corridor in a random
+/// frame; every pair sharing at least `min_shared` m of corridor is aligned: global search (no
+/// guess), and where it fails, local refinement from the truth displaced by 0.3 m / 3 deg (what
+/// the server does for an extra pair from its pose estimates). Edges go into `g` as aligned.
+RealFleet real_fleet(const octomap::OcTree& world, int n, double length, double min_shared, unsigned seed,
+                     mg::PoseGraph& g) {
+  namespace ma = mapmerge::align;
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> uni(-1.0, 1.0);
+  const double x0 = -8.0, x1 = 31.0;
+  const double step = n > 1 ? (x1 - x0 - length) / (n - 1) : 0.0;
+  RealFleet f;
+  std::vector<ma::PreparedMap> prepared;
+  std::vector<std::shared_ptr<const octomap::OcTree>> maps;
+  const ma::AlignConfig config;
+  for (int i = 0; i < n; ++i) {
+    f.ids.push_back(sim::robot_name(i));
+    const Eigen::Matrix4d T = mapmerge::paper_transform(3 * uni(rng), 3 * uni(rng), 0.2 * uni(rng), 2 * uni(rng),
+                                                 2 * uni(rng), 180 * uni(rng));
+    f.T_robot_world.emplace_back(T);
+    const Eigen::AlignedBox3d box(Eigen::Vector3d(x0 + i * step, -8, -1), Eigen::Vector3d(x0 + i * step + length, 8, 4));
+    maps.push_back(mapmerge::crop_and_transform(world, box, Eigen::Isometry3d(T)));
+    prepared.push_back(ma::prepare_map(maps.back(), config));
+  }
+  g.set_reference(f.ids[0]);
+  for (const auto& id : f.ids) g.add_robot(id);
+  for (int t = 0; t < n; ++t) {
+    for (int s = t + 1; s < n; ++s) {
+      if (length - (s - t) * step < min_shared) continue;
+      ma::AlignResult r = ma::align(prepared[t], prepared[s], config);
+      const bool global = r.accepted;
+      if (!r.accepted) {
+        const Eigen::Matrix4d guess = f.truth(t, s).matrix() * mapmerge::paper_transform(0.3, -0.3, 0.2, 1, -1, 3);
+        r = ma::refine(prepared[t], prepared[s], guess, config);
+      }
+      if (!r.accepted) {
+        ++f.failed_pairs;
+        continue;
+      }
+      (global ? f.global_edges : f.refined_edges)++;
+      const Eigen::Isometry3d T(r.T_target_source);
+      const mg::AlignmentQuality q{r.inliers, r.fitness, r.overlap,
+                                   mg::overlap_pivot(box_of(*maps[s]), box_of(*maps[t]), T)};
+      const mg::EdgeInformation info = mg::information_from_alignment(q);
+      if (!info.valid) continue;
+      const sim::PoseError e = sim::pose_error(T, f.truth(t, s));
+      if (e.rotation_deg > 5.0 || e.translation > 1.0) {
+        ++f.wrong_edges;
+        f.wrong_ids.push_back(mg::default_edge_id(f.ids[s], f.ids[t]));
+      }
+      g.add_or_update_edge({f.ids[s], f.ids[t], T, info.information, ""});
+    }
+  }
+  return f;
+}
+
+void real_accuracy() {
+  const auto world = mapmerge::read_octree_file(MAPMERGE_DATA_DIR "/geb079.bt");
+  std::printf("## Real alignments (geb079, one seeded fleet per row, reference robot00 at one end)\n\n");
+  std::printf("Robots map 14 m strips of the corridor, evenly spaced, each in a random frame; every pair sharing\n"
+              "at least 4 m is aligned by core/align (global search; where it fails, refinement from the truth\n"
+              "displaced by 0.3 m / 3 deg, as the server's extra pairs refine from pose estimates). A wrong edge\n"
+              "is one off the truth by more than 5 deg or 1 m. Errors over the non-reference robots.\n\n");
+  std::printf("| robots | edges (global + refined) | pairs not aligned | wrong edges (rejected) | chain mean [m] | "
+              "graph mean [m] | chain max [m] | graph max [m] | chain max [deg] | graph max [deg] | "
+              "robots placed (graph) |\n|---|---|---|---|---|---|---|---|---|---|---|\n");
+  for (int n : {4, 8, 16}) {
+    mg::PoseGraph g;
+    const RealFleet f = real_fleet(*world, n, 14.0, 4.0, 77u + static_cast<unsigned>(n), g);
+    const mg::GraphSolution chained = g.chain({});
+    const mg::GraphSolution optimised = g.optimise({});
+    int rejected = 0;
+    for (const auto& id : f.wrong_ids) rejected += optimised.edge(id)->state == mg::EdgeState::kRejected ? 1 : 0;
+    const auto errors = [&](const mg::GraphSolution& s, double& mean_t, double& max_t, double& max_r) {
+      int k = 0;
+      mean_t = max_t = max_r = 0.0;
+      for (int i = 1; i < n; ++i) {
+        const mg::RobotSolution* r = s.robot(f.ids[i]);
+        if (!r->connected) continue;
+        const sim::PoseError e = sim::pose_error(r->T_global_robot, f.truth(0, i));
+        mean_t += e.translation;
+        max_t = std::max(max_t, e.translation);
+        max_r = std::max(max_r, e.rotation_deg);
+        ++k;
+      }
+      mean_t = k ? mean_t / k : 0.0;
+      return k;
+    };
+    double cm, cx, cr, gm, gx, gr;
+    errors(chained, cm, cx, cr);
+    const int placed = errors(optimised, gm, gx, gr);
+    std::printf("| %d | %d (%d + %d) | %d | %d (%d) | %.3f | %.3f | %.3f | %.3f | %.2f | %.2f | %d / %d |\n", n,
+                f.global_edges + f.refined_edges, f.global_edges, f.refined_edges, f.failed_pairs, f.wrong_edges,
+                rejected, cm, gm, cx, gx, cr, gr, placed, n - 1);
+    std::fflush(stdout);
+  }
+  std::printf("\n");
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -228,5 +350,6 @@ int main(int argc, char** argv) {
     wrong_edges(o, 2);
   }
   timing(o);
+  if (o.real) real_accuracy();
   return 0;
 }

@@ -120,11 +120,16 @@ TEST_F(ServerFleet, FiveRobotsGetAGraphWithCyclesThatSurvivesARestart) {
   }
   ASSERT_TRUE(aligned(op, ids));
   const auto poses = op.poses();
+  double worst_m = 0.0, worst_deg = 0.0;
   for (std::size_t i = 1; i < ids.size(); ++i) {
     const auto& pose = poses.at(ids[i]);
+    worst_deg = std::max(worst_deg, rotation_error_deg(f.truth(0, i), pose.T_global_robot));
+    worst_m = std::max(worst_m, translation_error_m(f.truth(0, i), pose.T_global_robot));
     EXPECT_LT(rotation_error_deg(f.truth(0, i), pose.T_global_robot), kMaxRotationDeg) << ids[i];
     EXPECT_LT(translation_error_m(f.truth(0, i), pose.T_global_robot), kMaxTranslationM) << ids[i];
   }
+  RecordProperty("max_translation_error_mm", static_cast<int>(worst_m * 1000.0));
+  RecordProperty("max_rotation_error_mdeg", static_cast<int>(worst_deg * 1000.0));
   EXPECT_GE(extra_edges(op), 1u);
   RecordProperty("accepted_pairs", static_cast<int>(accepted_pairs(op).size()));
   RecordProperty("extra_edges", static_cast<int>(extra_edges(op)));
