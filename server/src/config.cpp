@@ -11,11 +11,12 @@ namespace {
 
 using align::ConfigError;
 
-/// Throws when `node` has a key not in `known`.
+/// Throws when `node` has a key not in `known` (or a key that is not a plain name).
 void check_keys(const YAML::Node& node, const std::string& section, const std::set<std::string>& known) {
   if (!node.IsMap()) throw ConfigError("config section '" + section + "' must be a map");
   for (const auto& kv : node) {
-    const auto key = kv.first.as<std::string>();
+    if (!kv.first.IsScalar()) throw ConfigError("config section '" + section + "' has a key that is not a name");
+    const auto& key = kv.first.Scalar();
     if (known.count(key) == 0) throw ConfigError("unknown config key '" + section + "." + key + "'");
   }
 }

@@ -157,6 +157,15 @@ void read_value(const YAML::Node& node, const std::string& name, T& out) {
   }
 }
 
+/// A mapping key as a name; throws for keys that are sequences or mappings (`? [a, b]: 1`).
+std::string key_name(const YAML::Node& key, const std::string& section) {
+  if (!key.IsScalar()) {
+    throw ConfigError("config " + (section.empty() ? std::string("document") : "section '" + section + "'") +
+                      " has a key that is not a name");
+  }
+  return key.Scalar();
+}
+
 /// Rejects keys of the document that no field has.
 void check_known_keys(const YAML::Node& root) {
   std::set<std::string> known, sections;
@@ -166,12 +175,12 @@ void check_known_keys(const YAML::Node& root) {
     if (*section) sections.insert(section);
   });
   for (const auto& kv : root) {
-    const auto top = kv.first.as<std::string>();
+    const auto top = key_name(kv.first, "");
     if (sections.count(top)) {
       if (!kv.second.IsMap() && !kv.second.IsNull())
         throw ConfigError("config section '" + top + "' must be a mapping");
       for (const auto& inner : kv.second) {
-        const auto name = top + "." + inner.first.as<std::string>();
+        const auto name = top + "." + key_name(inner.first, top);
         if (!known.count(name)) throw ConfigError("unknown config key '" + name + "'");
       }
     } else if (!known.count(top)) {
