@@ -1,6 +1,8 @@
 # Installs the client component of a build tree into a fresh prefix, then configures, builds
 # and runs a tiny consumer project against it (find_package(mapmerge), mapmerge::client).
-#   cmake -DBUILD_DIR=... -DCONSUMER_DIR=... -DWORK_DIR=... -DGENERATOR=... -P install_consumer_test.cmake
+#   cmake -DBUILD_DIR=... -DCONSUMER_DIR=... -DWORK_DIR=... -DGENERATOR=... -DCONSUMER_CXX=...
+#         [-DCONSUMER_FLAGS=...] -P install_consumer_test.cmake
+# (CONSUMER_CXX/FLAGS: the build's compiler and sanitizer flags, which the consumer must share.)
 function(run)
   execute_process(COMMAND ${ARGN} RESULT_VARIABLE rc OUTPUT_VARIABLE out ERROR_VARIABLE err)
   if(NOT rc EQUAL 0)
@@ -22,7 +24,8 @@ file(GLOB_RECURSE headers RELATIVE ${prefix}/include ${prefix}/include/*)
 if(NOT headers STREQUAL "mapmerge/client/client.hpp")
   message(FATAL_ERROR "unexpected installed headers: ${headers}")
 endif()
-run(${CMAKE_COMMAND} -S ${CONSUMER_DIR} -B ${WORK_DIR}/build -G ${GENERATOR} -DCMAKE_PREFIX_PATH=${prefix})
+run(${CMAKE_COMMAND} -S ${CONSUMER_DIR} -B ${WORK_DIR}/build -G ${GENERATOR} -DCMAKE_PREFIX_PATH=${prefix}
+    -DCMAKE_CXX_COMPILER=${CONSUMER_CXX} "-DCMAKE_CXX_FLAGS=${CONSUMER_FLAGS}")
 run(${CMAKE_COMMAND} --build ${WORK_DIR}/build)
 run(${WORK_DIR}/build/consumer ${domain})
 file(REMOVE_RECURSE ${WORK_DIR})
