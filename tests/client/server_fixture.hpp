@@ -14,6 +14,7 @@
 #include <nlohmann/json.hpp>
 
 #include "dds_test_env.hpp"
+#include "sanitizer.hpp"
 #include "process.hpp"
 
 namespace mapmerge::test {
@@ -63,7 +64,7 @@ class ServerFixture : public ::testing::Test {
                      {"scenario", std::string(MAPMERGE_DATA_DIR) + "/fr_079.bt", "-o", dir_.string(), "-n", "2",
                       "--min-overlap", "0.4", "--max-overlap", "0.5", "--seed", "3"},
                      (dir_ / "scenario").string());
-    ASSERT_EQ(scenario.wait(std::chrono::seconds(120)), 0) << scenario.err();
+    ASSERT_EQ(scenario.wait(std::chrono::seconds(120 * test::kSanitizerSlowdown)), 0) << scenario.err();
     std::ifstream in(dir_ / "truth.json");
     truth_ = nlohmann::json::parse(in);
   }
