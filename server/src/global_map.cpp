@@ -59,6 +59,32 @@ std::vector<PlacedMap> GlobalMapBuilder::placed_maps(const Registry& registry,
   return maps;
 }
 
+bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Contribution>& contributors) {
+  bool grown = false;  // a map to fuse by its difference (cheap)
+  bool moved = false;  // a map to fuse whole: new robot or new pose (costly)
+  for (const PlacedMap& m : maps) {
+    if (fusion_->holds(m.robot, m.tree.get(), m.T_global_robot)) continue;
+    const auto fused = fusion_->pose_of(m.robot);
+    (fused && *fused == m.T_global_robot ? grown : moved) = true;
+  }
+  if (!grown || !moved) return false;
+  for (std::size_t i = 0; i < maps.size(); ++i) {
+    const auto fused = fusion_->pose_of(maps[i].robot);
+    if (fused && *fused == maps[i].T_global_robot) continue;
+    if (fused) {  // as it is fused now, with the contribution fused then
+      maps[i].tree = fusion_->map_of(maps[i].robot);
+      maps[i].T_global_robot = *fused;
+      const auto c = fused_contributions_.find(maps[i].robot);
+      if (c != fused_contributions_.end()) contributors[i] = c->second;
+    } else {  // not yet in the global map: the next build fuses it
+      maps.erase(maps.begin() + static_cast<std::ptrdiff_t>(i));
+      contributors.erase(contributors.begin() + static_cast<std::ptrdiff_t>(i));
+      --i;
+    }
+  }
+  return true;
+}
+
 const Eigen::AlignedBox3d& GlobalMapBuilder::extent(const std::string& robot,
                                                     const std::shared_ptr<const octomap::OcTree>& tree) {
   auto& [map, box] = extents_[robot];
@@ -87,6 +113,7 @@ std::optional<GlobalMapOut> GlobalMapBuilder::build(const Registry& registry, st
     g.contributors.clear();
     maps = placed_maps(registry, g.contributors);  // no fused poses to keep in a new fusion
   }
+  deferred_ = defer_moves(maps, g.contributors);
   const GlobalSync sync = sync_global(*fusion_, maps, refused_);
   for (const auto& [robot, reason] : sync.skipped) {
     spdlog::warn("robot {}: map left out of the global map: {}", robot, reason);
@@ -98,6 +125,7 @@ std::optional<GlobalMapOut> GlobalMapBuilder::build(const Registry& registry, st
                                                sync.fused.end();
                                       }),
                        g.contributors.end());
+  for (const Contribution& c : g.contributors) fused_contributions_[c.robot_id] = c;
   const auto t1 = std::chrono::steady_clock::now();
   const Encoding encoding = parse_encoding(config_.publish.global_encoding).value_or(Encoding::kOctomapBt);
   GlobalFusion::Encoded e = fusion_->encode();

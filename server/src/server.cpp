@@ -147,6 +147,10 @@ void Server::publish_global() {
   for (const PoseOut& p : poses) {
     if (p.state != PoseState::kAligned) unaligned += " " + p.robot_id;
   }
+  if (builder_.deferred()) {  // robots to fuse whole next: build again (after min_interval_s)
+    dirty_ = true;
+    cv_.notify_all();
+  }
   const auto st = builder_.last_stages();
   auto ms = [](Clock::duration d) { return std::chrono::duration<double, std::milli>(d).count(); };
   spdlog::info("global map {} published: {} robots ({} re-fused, {} by difference), {} bytes in {:.0f} ms "

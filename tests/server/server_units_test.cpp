@@ -578,6 +578,39 @@ TEST(GlobalMapBuilder, AGrownMapIsFusedByItsDifferenceAndEqualsAFreshBuild) {
   EXPECT_GT(p.owner.size(), 10000u);
 }
 
+TEST(GlobalMapBuilder, AGrownMapIsPublishedBeforeAMovedOneIsFusedAgain) {
+  const auto world = test::load_data_map("geb079.bt");
+  const Eigen::Matrix4d T2 = mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155);
+  const auto r1 = test::cut_robot_map(*world, "r1", box(-8, 12), Eigen::Matrix4d::Identity());
+  const auto r1_grown = test::cut_robot_map(*world, "r1", box(-8, 16), Eigen::Matrix4d::Identity());
+  const auto r2 = test::cut_robot_map(*world, "r2", box(4, 24), T2);
+  const auto r2_grown = test::cut_robot_map(*world, "r2", box(4, 30), T2);
+  ServerConfig config;
+  Registry registry;
+  registry.claim_reference("r1");
+  registry.put_map(record_of(r1, 1));
+  registry.put_map(record_of(r2, 1));
+  registry.put_edge(Edge{"r1", "r2", T2.inverse(), 0.02});
+  GlobalMapBuilder builder(config);
+  ASSERT_TRUE(builder.build(registry, 1));
+  // r1 grows while r2 grows and is moved by 0.3 m: r1's difference goes out first.
+  registry.put_map(record_of(r1_grown, 2));
+  registry.put_map(record_of(r2_grown, 2));
+  registry.put_edge(Edge{"r1", "r2", mapmerge::paper_transform(0.3, 0, 0, 0, 0, 0) * T2.inverse(), 0.02});
+  const auto first = builder.build(registry, 2);
+  ASSERT_TRUE(first);
+  EXPECT_TRUE(builder.deferred());
+  EXPECT_EQ(builder.last_stages().incremental, 1u);
+  for (const Contribution& c : first->contributors) EXPECT_EQ(c.sequence, c.robot_id == "r1" ? 2u : 1u) << c.robot_id;
+  const auto second = builder.build(registry, 3);
+  ASSERT_TRUE(second);
+  EXPECT_FALSE(builder.deferred());
+  for (const Contribution& c : second->contributors) EXPECT_EQ(c.sequence, 2u) << c.robot_id;
+  const auto expected = GlobalMapBuilder(config).build(registry, 3);
+  ASSERT_TRUE(expected);
+  EXPECT_TRUE(second->data == expected->data) << "after the deferred move, the map differs from a fresh build";
+}
+
 TEST(ExportGlobal, WritesTheLastGlobalMapAndWhichRobotContributedEachVoxel) {
   const auto world = test::load_data_map("geb079.bt");
   const Eigen::Matrix4d T2 = mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155);

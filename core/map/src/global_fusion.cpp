@@ -138,6 +138,11 @@ std::optional<Eigen::Matrix4d> GlobalFusion::pose_of(const std::string& robot) c
   return it->second.T_global_robot;
 }
 
+std::shared_ptr<const octomap::OcTree> GlobalFusion::map_of(const std::string& robot) const {
+  const auto it = robots_.find(robot);
+  return it == robots_.end() ? nullptr : it->second.map;
+}
+
 std::size_t GlobalFusion::memory_usage() const { return sums_->memoryUsage(); }
 
 void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stats) {

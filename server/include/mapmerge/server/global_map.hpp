@@ -29,6 +29,10 @@ class GlobalMapBuilder {
   /// keeps its fused pose (a refinement's or the pose graph's wobble does not re-fuse its map).
   std::optional<GlobalMapOut> build(const Registry& registry, std::uint64_t version);
 
+  /// True when the last build left robots to fuse whole (new robots, moved poses) for the next
+  /// build, because it had grown maps to publish first: build again soon.
+  bool deferred() const { return deferred_; }
+
   /// Which robot contributed each occupied voxel of the last built map, with every robot's frame.
   /// O(occupied voxels of all robots): call it off the publishing path.
   Provenance provenance() const;
@@ -48,7 +52,12 @@ class GlobalMapBuilder {
   const ServerConfig& config_;
   std::unique_ptr<GlobalFusion> fusion_;
   const Eigen::AlignedBox3d& extent(const std::string& robot, const std::shared_ptr<const octomap::OcTree>& tree);
+  /// When some maps only grew and others must be fused whole (new robot, new pose), keeps the
+  /// latter as fused for this build, so grown maps reach the fleet first; true if it did.
+  bool defer_moves(std::vector<PlacedMap>& maps, std::vector<Contribution>& contributors);
   RefusedMaps refused_;
+  std::map<std::string, Contribution> fused_contributions_;  ///< per robot: the map version fused
+  bool deferred_ = false;
   std::map<std::string, std::pair<std::weak_ptr<const octomap::OcTree>, Eigen::AlignedBox3d>> extents_;  ///< per robot
   Stages stages_;
 };

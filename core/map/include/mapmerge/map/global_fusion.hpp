@@ -76,6 +76,8 @@ class GlobalFusion {
   bool holds(const std::string& robot, const octomap::OcTree* map, const Eigen::Matrix4d& T) const;
   /// The pose `robot` is fused with (nullopt for a robot not fused).
   std::optional<Eigen::Matrix4d> pose_of(const std::string& robot) const;
+  /// The map `robot` is fused with (null for a robot not fused).
+  std::shared_ptr<const octomap::OcTree> map_of(const std::string& robot) const;
   /// Robots in the global map, sorted.
   std::vector<std::string> robots() const;
   double resolution() const { return resolution_; }
