@@ -124,7 +124,7 @@ struct RefineConfig {
   bool point_to_plane = true;    ///< ICP/OICP objective: point-to-plane (else point-to-point)
   int max_iterations = 30;       ///< ICP/NDT iterations [count]
   double max_correspondence = 4.0;  ///< ICP pair distance, first iteration [x max(u, res)]
-  double final_correspondence = 2.0;  ///< ICP pair distance reached by the last iterations [x res]
+  double final_correspondence = 1.0;  ///< ICP pair distance reached by the last iterations [x res] (2 let coarse corridors slide 1.5 voxels)
   double crop_margin = 10.0;     ///< d_m: inflation of the source box when cropping the target [x max(u, res)]
   double convergence_translation = 0.05;  ///< stop when an update moves less than this [x res]
   double convergence_rotation_deg = 0.02;  ///< ... and rotates less than this [deg]
