@@ -16,7 +16,7 @@
 #include "fleet.hpp"
 #include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/map_codec.hpp"
-#include "server_process.hpp"
+#include "child_process.hpp"
 
 namespace mt = mapmerge::test;
 using Clock = std::chrono::steady_clock;

@@ -8,11 +8,11 @@
 #include <nlohmann/json.hpp>
 #include <octomap/OcTree.h>
 
+#include "child_process.hpp"
 #include "dds_test_env.hpp"
 #include "fake_server.hpp"
 #include "mapmerge/map/map_codec.hpp"
 #include "mapmerge/map/map_io.hpp"
-#include "process.hpp"
 
 namespace mapmerge {
 namespace {
@@ -55,10 +55,10 @@ TEST_F(Cli, RobotPublishesAndExitsWhenAligned) {
     const std::string id = "r_" + vendor;
     test::FakeServer server(test::dds_domain());
     server.listen_to(id);
-    test::Process robot(kRobot,
-                        {"--id", id, "--map", kData + "/geb079.bt", "--domain", domain(), "--vendor", vendor,
-                         "--zstd", "--json", "--exit-when-aligned", "--timeout", "60"},
-                        log("robot_" + vendor));
+    test::ChildProcess robot(kRobot,
+                             {"--id", id, "--map", kData + "/geb079.bt", "--domain", domain(), "--vendor", vendor,
+                              "--zstd", "--json", "--exit-when-aligned", "--timeout", "60"},
+                             test::Logs::split(log("robot_" + vendor)));
     const auto update = server.take_map(id, kDelivery);
     ASSERT_TRUE(update) << robot.err();
     EXPECT_EQ(update->encoding(), "octomap-bt+zstd");
@@ -87,8 +87,10 @@ TEST_P(CliListen, PrintsJsonPosesAndSavesTheGlobalMap) {
   ASSERT_TRUE(server.publish_pose(test::FakeServer::make_pose("r3", mapmerge::POSE_UNKNOWN, {0, 0, 0}, {0, 0, 0, 1}, 5)));
   ASSERT_TRUE(server.publish_global(encode_map(*tree, Encoding::kOctomapBt), "octomap-bt", 5, {"r1", "r2"}));
   const std::string out = (dir_ / "global.bt").string();
-  test::Process listen(kListen, {"--domain", domain(), "--vendor", GetParam(), "--json", "--until-aligned", "2", "-o", out, "--timeout", "60"},
-                       log("listen"));
+  test::ChildProcess listen(kListen,
+                            {"--domain", domain(), "--vendor", GetParam(), "--json", "--until-aligned", "2", "-o", out,
+                             "--timeout", "60"},
+                            test::Logs::split(log("listen")));
   ASSERT_EQ(listen.wait(kExit), 0) << listen.err();
   const auto lines = json_lines(listen.out());
   ASSERT_GE(lines.size(), 2u) << listen.out();
@@ -116,22 +118,24 @@ TEST_P(CliListen, PrintsJsonPosesAndSavesTheGlobalMap) {
 INSTANTIATE_TEST_SUITE_P(Vendors, CliListen, ::testing::Values("fastdds", "cyclone"));
 
 TEST_F(Cli, ListenTimesOutWithExitCode3) {
-  test::Process listen(kListen, {"--domain", domain(), "--until-aligned", "1", "--timeout", "1"}, log("listen"));
+  test::ChildProcess listen(kListen, {"--domain", domain(), "--until-aligned", "1", "--timeout", "1"},
+                            test::Logs::split(log("listen")));
   EXPECT_EQ(listen.wait(kExit), 3) << listen.err();
   EXPECT_NE(listen.err().find("timeout"), std::string::npos) << listen.err();
 }
 
 TEST_F(Cli, RobotNotAlignedInTimeExitsWithCode3) {
-  test::Process robot(kRobot,
-                      {"--id", "r8", "--map", kData + "/geb079.bt", "--domain", domain(), "--exit-when-aligned",
-                       "--timeout", "1"},
-                      log("robot"));
+  test::ChildProcess robot(kRobot,
+                           {"--id", "r8", "--map", kData + "/geb079.bt", "--domain", domain(), "--exit-when-aligned",
+                            "--timeout", "1"},
+                           test::Logs::split(log("robot")));
   EXPECT_EQ(robot.wait(kExit), 3) << robot.err();
   EXPECT_NE(robot.err().find("not aligned"), std::string::npos) << robot.err();
 }
 
 TEST_F(Cli, RobotStopsCleanlyOnSigterm) {
-  test::Process robot(kRobot, {"--id", "r9", "--map", kData + "/geb079.bt", "--domain", domain()}, log("robot"));
+  test::ChildProcess robot(kRobot, {"--id", "r9", "--map", kData + "/geb079.bt", "--domain", domain()},
+                           test::Logs::split(log("robot")));
   std::this_thread::sleep_for(1500ms);
   ASSERT_TRUE(robot.running()) << robot.err();
   robot.signal(SIGTERM);
@@ -141,7 +145,7 @@ TEST_F(Cli, RobotStopsCleanlyOnSigterm) {
 
 TEST_F(Cli, BadInputGivesExitCode2AndOneLine) {
   const auto run = [&](std::vector<std::string> args) {
-    test::Process p(kRobot, args, log("bad"));
+    test::ChildProcess p(kRobot, args, test::Logs::split(log("bad")));
     const int code = p.wait(kExit);
     EXPECT_FALSE(p.err().empty());
     return code;
@@ -150,7 +154,7 @@ TEST_F(Cli, BadInputGivesExitCode2AndOneLine) {
   EXPECT_EQ(run({"--id", "r1", "--map", kData + "/geb079.bt", "--profile", "nonsense"}), 2);
   EXPECT_EQ(run({"--id", "r1", "--map", kData + "/README.md"}), 2);
   EXPECT_EQ(run({"--id", "r1"}), 2);
-  test::Process help(kListen, {"--help"}, log("help"));
+  test::ChildProcess help(kListen, {"--help"}, test::Logs::split(log("help")));
   EXPECT_EQ(help.wait(kExit), 0);
   EXPECT_NE(help.out().find("--until-aligned"), std::string::npos);
 }

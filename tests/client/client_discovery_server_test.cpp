@@ -6,11 +6,11 @@
 #include <gtest/gtest.h>
 #include <octomap/OcTree.h>
 
+#include "child_process.hpp"
 #include "dds_test_env.hpp"
 #include "fake_server.hpp"
 #include "mapmerge/client/client.hpp"
 #include "mapmerge/map/map_io.hpp"
-#include "process.hpp"
 
 namespace mapmerge {
 namespace {
@@ -22,7 +22,8 @@ TEST(DiscoveryServer, ClientAndServerMeetThroughIt) {
   const std::string port = std::to_string(30000 + domain);  // one port per test domain
   const std::string address = "127.0.0.1:" + port;
   const std::string logs = ::testing::TempDir() + "ds_" + std::to_string(::getpid());
-  test::Process ds("/usr/bin/fast-discovery-server", {"-i", "0", "-l", "127.0.0.1", "-p", port}, logs);
+  test::ChildProcess ds("/usr/bin/fast-discovery-server", {"-i", "0", "-l", "127.0.0.1", "-p", port},
+                        test::Logs::split(logs));
   std::this_thread::sleep_for(500ms);
   ASSERT_TRUE(ds.running()) << ds.err();
 
@@ -52,8 +53,8 @@ TEST(DiscoveryServer, FastddsClientTakesItFromRosDiscoveryServer) {
   const int domain = test::dds_domain();
   const std::string port = std::to_string(30000 + domain);
   const std::string address = "127.0.0.1:" + port;
-  test::Process ds("/usr/bin/fast-discovery-server", {"-i", "0", "-l", "127.0.0.1", "-p", port},
-                   ::testing::TempDir() + "ds_env_" + std::to_string(::getpid()));
+  test::ChildProcess ds("/usr/bin/fast-discovery-server", {"-i", "0", "-l", "127.0.0.1", "-p", port},
+                        test::Logs::split(::testing::TempDir() + "ds_env_" + std::to_string(::getpid())));
   std::this_thread::sleep_for(500ms);
   ASSERT_TRUE(ds.running()) << ds.err();
   test::FakeServer server(domain, address);

@@ -112,15 +112,15 @@ namespace {
 TEST_F(ClientServerE2E, CliRobotsAndListenAgainstTheServer) {
   start_server();
   const std::string domain = std::to_string(test::dds_domain());
-  test::Process r1(test::kBin + "mapmerge-robot", {"--id", "r1", "--map", map_path("r1"), "--domain", domain},
-                   (dir_ / "r1").string());
-  test::Process r2(test::kBin + "mapmerge-robot",
-                   {"--id", "r2", "--map", map_path("r2"), "--domain", domain, "--vendor", "cyclone", "--zstd"},
-                   (dir_ / "r2").string());
+  test::ChildProcess r1(test::kBin + "mapmerge-robot", {"--id", "r1", "--map", map_path("r1"), "--domain", domain},
+                        test::Logs::split((dir_ / "r1").string()));
+  test::ChildProcess r2(test::kBin + "mapmerge-robot",
+                        {"--id", "r2", "--map", map_path("r2"), "--domain", domain, "--vendor", "cyclone", "--zstd"},
+                        test::Logs::split((dir_ / "r2").string()));
   const std::string global = (dir_ / "global.bt").string();
-  test::Process listen(test::kBin + "mapmerge-listen",
-                       {"--domain", domain, "--json", "--until-aligned", "2", "-o", global, "--timeout", "150"},
-                       (dir_ / "listen").string());
+  test::ChildProcess listen(test::kBin + "mapmerge-listen",
+                            {"--domain", domain, "--json", "--until-aligned", "2", "-o", global, "--timeout", "150"},
+                            test::Logs::split((dir_ / "listen").string()));
   ASSERT_EQ(listen.wait(std::chrono::seconds(200)), 0) << listen.err() << server_log();
 
   std::map<std::string, nlohmann::json> latest;

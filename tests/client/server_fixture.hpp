@@ -13,9 +13,9 @@
 #include <octomap/OcTree.h>
 #include <nlohmann/json.hpp>
 
+#include "child_process.hpp"
 #include "dds_test_env.hpp"
 #include "sanitizer.hpp"
-#include "process.hpp"
 
 namespace mapmerge::test {
 
@@ -60,10 +60,10 @@ class ServerFixture : public ::testing::Test {
     fs::remove_all(dir_);
     fs::create_directories(dir_);
     // Two robots, 40-50 % overlap, each in its own random frame; r1 defines the global frame.
-    Process scenario(kBin + "mapmerge",
-                     {"scenario", std::string(MAPMERGE_DATA_DIR) + "/fr_079.bt", "-o", dir_.string(), "-n", "2",
-                      "--min-overlap", "0.4", "--max-overlap", "0.5", "--seed", "3"},
-                     (dir_ / "scenario").string());
+    ChildProcess scenario(kBin + "mapmerge",
+                          {"scenario", std::string(MAPMERGE_DATA_DIR) + "/fr_079.bt", "-o", dir_.string(), "-n", "2",
+                           "--min-overlap", "0.4", "--max-overlap", "0.5", "--seed", "3"},
+                          Logs::split((dir_ / "scenario").string()));
     ASSERT_EQ(scenario.wait(std::chrono::seconds(120 * test::kSanitizerSlowdown)), 0) << scenario.err();
     std::ifstream in(dir_ / "truth.json");
     truth_ = nlohmann::json::parse(in);
@@ -75,22 +75,20 @@ class ServerFixture : public ::testing::Test {
   }
 
   void start_server() {
-    server_ = std::make_unique<Process>(
-        kBin + "mapmerge-server",
+    server_ = std::make_unique<ServerProcess>(
         std::vector<std::string>{"--domain", std::to_string(dds_domain()), "--profile", "local", "--state-dir",
                                  (dir_ / "state").string(), "--reference", "r1"},
-        (dir_ / ("server" + std::to_string(++server_runs_))).string());
+        (dir_ / ("server" + std::to_string(++server_runs_) + ".log")).string());
   }
   /// SIGTERM (clean) or SIGKILL (crash); a killed Fast DDS process's shared memory is cleaned.
   void stop_server(int sig = SIGTERM) {
     if (!server_) return;
-    server_->signal(sig);
-    server_->wait(std::chrono::seconds(30));
+    server_->kill(sig, std::chrono::seconds(30));
     server_.reset();
     if (sig == SIGKILL) std::system("fastdds shm clean >/dev/null 2>&1");
   }
   std::string server_log() const {
-    return server_ ? server_->err() + server_->out() : std::string();
+    return server_ ? server_->log() : std::string();
   }
 
   std::string map_path(const std::string& robot) const { return (dir_ / (robot + ".bt")).string(); }
@@ -108,7 +106,7 @@ class ServerFixture : public ::testing::Test {
 
   fs::path dir_;
   nlohmann::json truth_;
-  std::unique_ptr<Process> server_;
+  std::unique_ptr<ServerProcess> server_;
   int server_runs_ = 0;
 };
 

@@ -8,10 +8,10 @@
 
 #include <gtest/gtest.h>
 
+#include "child_process.hpp"
 #include "dds_test_env.hpp"
 #include "fleet.hpp"
 #include "mapmerge/map/crop.hpp"
-#include "server_process.hpp"
 
 namespace mapmerge::test {
 

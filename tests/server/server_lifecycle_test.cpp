@@ -116,7 +116,7 @@ TEST_F(ServerFleet, BurstOfFiftyUpdatesIsCoalescedAndTheLastOneFused) {
 TEST_F(ServerFleet, DiscoveryServerOnLoopback) {
   const int port = 21000 + domain;
   ChildProcess discovery("fastdds", {"discovery", "-i", "0", "-l", "127.0.0.1", "-p", std::to_string(port)},
-                         dir + "/discovery.log");
+                         Logs::combined(dir + "/discovery.log"));
   const std::string address = "127.0.0.1:" + std::to_string(port);
   auto server = start_server({"--discovery-server", address});
   wire::ProfileSpec profile;

@@ -10,9 +10,9 @@
 #include <gtest/gtest.h>
 #include <sqlite3.h>
 
+#include "child_process.hpp"
 #include "five_robots.hpp"
 #include "fleet.hpp"
-#include "server_process.hpp"
 #include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/map_io.hpp"
 #include "mapmerge/server/config.hpp"
@@ -667,7 +667,7 @@ TEST(ServerExitCodes, UsageAndStoreErrorsAreDistinct) {
   const std::string dir = test::temp_dir("exit_codes");
   const auto run = [&](const std::vector<std::string>& args) {
     test::ServerProcess p(args, dir + "/server.log");
-    return p.kill(0, std::chrono::seconds(30));  // signal 0: just wait for the exit
+    return p.wait(std::chrono::seconds(30));
   };
   EXPECT_EQ(run({"--domain", "300"}), 2);
   std::ofstream(dir + "/bad.yaml") << "merge: {threads: 0}\n";
