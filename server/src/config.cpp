@@ -45,7 +45,8 @@ void read_network(const YAML::Node& n, NetworkConfig& c) {
 void read_merge(const YAML::Node& n, MergeConfig& c) {
   check_keys(n, "merge", {"threads", "reference", "global_frame", "global_resolution", "refine_known",
                           "refine_republish_translation", "refine_republish_rotation_deg", "extra_pairs",
-                          "extra_min_overlap", "extra_overlap_samples", "extra_global_fallback", "extra_max_jobs"});
+                          "extra_min_overlap", "extra_overlap_samples", "extra_global_fallback", "extra_max_jobs",
+                          "keep_lost_maps"});
   read(n, "threads", c.threads, "merge");
   read(n, "reference", c.reference, "merge");
   read(n, "global_frame", c.global_frame, "merge");
@@ -58,6 +59,7 @@ void read_merge(const YAML::Node& n, MergeConfig& c) {
   read(n, "extra_overlap_samples", c.extra_overlap_samples, "merge");
   read(n, "extra_global_fallback", c.extra_global_fallback, "merge");
   read(n, "extra_max_jobs", c.extra_max_jobs, "merge");
+  read(n, "keep_lost_maps", c.keep_lost_maps, "merge");
 }
 
 void read_publish(const YAML::Node& n, PublishConfig& c) {
@@ -69,9 +71,10 @@ void read_publish(const YAML::Node& n, PublishConfig& c) {
 }
 
 void read_store(const YAML::Node& n, StoreConfig& c) {
-  check_keys(n, "store", {"state_dir", "synchronous_full"});
+  check_keys(n, "store", {"state_dir", "synchronous_full", "retry_period_s"});
   read(n, "state_dir", c.state_dir, "store");
   read(n, "synchronous_full", c.synchronous_full, "store");
+  read(n, "retry_period_s", c.retry_period_s, "store");
 }
 
 void read_limits(const YAML::Node& n, DecodeLimits& c) {
@@ -97,6 +100,7 @@ void check(const ServerConfig& c) {
   if (c.publish.min_interval_s < 0.0 || c.publish.republish_period_s <= 0.0 || c.publish.status_period_s <= 0.0) {
     throw ConfigError("publish periods must be positive");
   }
+  if (!(c.store.retry_period_s > 0.0)) throw ConfigError("store.retry_period_s must be positive");
   if (!parse_encoding(c.publish.global_encoding)) throw ConfigError("publish.global_encoding is not an encoding");
   if (!(c.limits.max_fusion_work > 0.0)) throw ConfigError("limits.max_fusion_work must be positive");
   if (c.network.security_enclave.empty()) throw ConfigError("network.security_enclave must not be empty");

@@ -141,6 +141,8 @@ mapmerge::ServerStatus to_native(const StatusOut& s) {
     rs.updates_accepted(r.accepted);
     rs.updates_rejected(r.rejected);
     rs.last_error(r.last_error);
+    rs.alive(r.alive);
+    rs.times_lost(r.times_lost);
     m.robots().push_back(rs);
   }
   for (const MergeReportOut& r : s.recent_merges) {
@@ -159,6 +161,12 @@ mapmerge::ServerStatus to_native(const StatusOut& s) {
   m.updates_rejected(s.updates_rejected);
   m.merges_run(s.merges_run);
   m.merges_coalesced(s.merges_coalesced);
+  m.store_ok(s.store_ok);
+  m.store_error(s.store_error);
+  m.store_failures(s.store_failures);
+  m.store_pending(s.store_pending);
+  m.merges_queued(s.merges_queued);
+  m.merges_queued_max(s.merges_queued_max);
   return m;
 }
 

@@ -1,5 +1,6 @@
 #include "mapmerge/server/dds_io.hpp"
 
+#include <algorithm>
 #include <atomic>
 #include <map>
 #include <mutex>
@@ -72,12 +73,41 @@ class DiscoveryListener : public fdds::DomainParticipantListener {
   std::vector<RobotTopic> pending_;
 };
 
-/// Reads one robot topic and hands every valid sample on.
+/// Counts the matched map writers of each robot (over all its topics) and reports when a robot
+/// gets its first one or loses its last one.
+class Presence {
+ public:
+  explicit Presence(std::function<void(const std::string&, bool)> report) : report_(std::move(report)) {}
+  void change(const std::string& robot, int delta) {
+    bool alive = false;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      int& n = writers_[robot];
+      const int before = n;
+      n = std::max(0, n + delta);
+      if ((before > 0) == (n > 0)) return;
+      alive = n > 0;
+    }
+    if (report_) report_(robot, alive);
+  }
+
+ private:
+  std::function<void(const std::string&, bool)> report_;
+  std::mutex mutex_;
+  std::map<std::string, int> writers_;
+};
+
+/// Reads one robot topic and hands every valid sample on; tells `presence` of its writers.
 template <class Msg>
 class MapReaderListener : public fdds::DataReaderListener {
  public:
-  MapReaderListener(RobotTopic topic, std::function<void(MapSample)> sink)
-      : topic_(std::move(topic)), sink_(std::move(sink)) {}
+  MapReaderListener(RobotTopic topic, std::function<void(MapSample)> sink, Presence& presence)
+      : topic_(std::move(topic)), sink_(std::move(sink)), presence_(presence) {}
+
+  /// A writer matched or went: it left, or its participant's lease expired (any vendor).
+  void on_subscription_matched(fdds::DataReader*, const fdds::SubscriptionMatchedStatus& info) override {
+    presence_.change(topic_.robot, info.current_count_change);
+  }
 
   void on_data_available(fdds::DataReader* reader) override {
     Msg msg;
@@ -94,6 +124,7 @@ class MapReaderListener : public fdds::DataReaderListener {
 
   RobotTopic topic_;
   std::function<void(MapSample)> sink_;
+  Presence& presence_;
   std::uint64_t ros_sequence_ = 0;
 };
 
@@ -122,6 +153,7 @@ wire::SecurityOptions security_options(const NetworkConfig& config) {
 
 struct DdsIo::Impl {
   Callbacks callbacks;
+  Presence presence;
   DiscoveryListener discovery;
   std::unique_ptr<wire::FastddsParticipant> participant;  // after the listeners it references
   RequestListener request_listener;
@@ -135,6 +167,7 @@ struct DdsIo::Impl {
 
   Impl(const NetworkConfig& config, Callbacks cb)
       : callbacks(std::move(cb)),
+        presence(callbacks.on_presence),
         discovery(config.ros_octomap_pattern, callbacks.on_discovery),
         request_listener(callbacks.on_request) {}
 
@@ -153,11 +186,11 @@ struct DdsIo::Impl {
   void create_reader(const RobotTopic& t) {
     auto& p = *participant;
     if (t.ros) {
-      auto l = std::make_unique<MapReaderListener<OctomapMsg>>(t, callbacks.on_map);
+      auto l = std::make_unique<MapReaderListener<OctomapMsg>>(t, callbacks.on_map, presence);
       p.create_reader(p.topic<octomap_msgs::msg::dds_::Octomap_PubSubType>(t.name), wire::TopicKind::State, l.get());
       reader_listeners.push_back(std::move(l));
     } else {
-      auto l = std::make_unique<MapReaderListener<mapmerge::MapUpdate>>(t, callbacks.on_map);
+      auto l = std::make_unique<MapReaderListener<mapmerge::MapUpdate>>(t, callbacks.on_map, presence);
       p.create_reader(p.topic<mapmerge::MapUpdatePubSubType>(t.name), wire::TopicKind::State, l.get());
       reader_listeners.push_back(std::move(l));
     }

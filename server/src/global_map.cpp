@@ -48,6 +48,7 @@ std::vector<PlacedMap> GlobalMapBuilder::placed_maps(const Registry& registry,
   for (const auto& [robot, pose] : registry.poses()) {
     const auto rec = registry.get(robot);
     if (!rec || !rec->tree) continue;
+    if (!config_.merge.keep_lost_maps && !registry.presence(robot).alive) continue;  // gone: left out
     Eigen::Matrix4d T = pose.T_global_robot;
     const auto fused = fusion_ ? fusion_->pose_of(robot) : std::nullopt;
     if (fused && max_displacement(*fused, T, extent(robot, rec->tree)) < 0.5 * fusion_->resolution()) {

@@ -114,6 +114,9 @@ int main(int argc, char** argv) {
     return kUsageError;
   }
   if (!f.export_prefix.empty()) return run_export(config, f.export_prefix);
+  // A file size limit (RLIMIT_FSIZE) reached by the state store is a failed write (EFBIG),
+  // reported and retried like a full disk, not the end of the process.
+  std::signal(SIGXFSZ, SIG_IGN);
   sigset_t set;
   sigemptyset(&set);
   sigaddset(&set, SIGINT);

@@ -48,8 +48,7 @@ void Pipeline::process(const std::string& robot, std::optional<MapSample> map, b
     refine_turn(robot.substr(0, robot.size() - suffix.size()));
     return;
   }
-  if (map && registry_.touch_if_unchanged(robot, map->session_id, map->sequence, content_hash(*map),
-                                          map->received_unix)) {
+  if (map && unchanged(*map)) {
     // The same map again (a periodic republish): only partners whose maps changed since are
     // worth a new global search; an aligned robot needs nothing.
     spdlog::debug("robot {}: map {}/{} unchanged", robot, map->session_id, map->sequence);
@@ -65,6 +64,14 @@ void Pipeline::process(const std::string& robot, std::optional<MapSample> map, b
 }
 
 bool Pipeline::restore(const MapSample& map) { return ingest(map, false); }
+
+bool Pipeline::unchanged(const MapSample& m) {
+  const auto held = registry_.get(m.topic_robot);
+  if (!held || !held->tree || held->session_id != m.session_id || held->content_hash != content_hash(m)) return false;
+  // Stored before the registry shows it (the status topic reports the registry's sequence).
+  if (store_ != nullptr) store_->touch_map(m.topic_robot, m.session_id, m.sequence, m.received_unix);
+  return registry_.touch_if_unchanged(m.topic_robot, m.session_id, m.sequence, content_hash(m), m.received_unix);
+}
 
 bool Pipeline::ingest(const MapSample& m, bool persist) {
   const std::string& robot = m.topic_robot;
@@ -88,18 +95,21 @@ bool Pipeline::ingest(const MapSample& m, bool persist) {
   r.content_hash = content_hash(m);
   const std::size_t leaves = decoded.tree->getNumLeafNodes();
   warn_on_resolution(robot, r.resolution);
-  const auto before = registry_.get(robot);
-  const bool new_session = before && !before->session_id.empty() && before->session_id != r.session_id;
-  registry_.put_map(std::move(r));
-  if (persist && new_session) persist_edges();  // its alignments were dropped
+  // Stored before the registry (and so the status topic and the global map) shows it: what the
+  // server has published is never lost by a crash. A failed write keeps the map in memory.
   const auto t1 = std::chrono::steady_clock::now();
-  if (persist && store_ != nullptr) {
-    try {
-      store_->save_map(m);
-    } catch (const StoreError& e) {
-      spdlog::error("robot {}: map kept in memory only, store failed: {}", robot, e.what());
+  if (persist) {
+    // A new session may come with a new map frame: its stored alignments go first (the
+    // registry drops them in put_map).
+    if (const auto held = registry_.get(robot); held && !held->session_id.empty() && held->session_id != m.session_id) {
+      store_edges_without(robot);
     }
   }
+  if (persist && store_ != nullptr && !store_->save_map(m)) {
+    spdlog::error("robot {}: map {}/{} served from memory only until the store works again", robot, m.session_id,
+                  m.sequence);
+  }
+  registry_.put_map(std::move(r));
   ++accepted_;
   spdlog::info("robot {}: map {}/{} accepted ({} leaves, {:.3f} m; decode {:.0f} ms, store {:.0f} ms)", robot,
                m.session_id, m.sequence, leaves, decoded.tree->getResolution(), decode_s * 1e3, seconds_since(t1) * 1e3);
@@ -120,7 +130,10 @@ void Pipeline::place(const std::string& robot) {
   const std::string wanted = config_.merge.reference.empty() ? robot : config_.merge.reference;
   const std::string reference = registry_.claim_reference(wanted);
   if (robot == reference) {
-    if (rec->map_revision == 1) spdlog::info("robot {} defines the global frame", robot);
+    if (rec->map_revision == 1) {
+      spdlog::info("robot {} defines the global frame", robot);
+      store_edges_without("");  // stores the reference
+    }
     // Robots heard before the reference (or dropped by its new session) wait for this; the
     // retry is a no-op for robots already tried against it.
     on_new_alignment(robot, true);
@@ -188,7 +201,7 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
     registry_.mark_tried(rec.robot_id, rec.map_revision, tried_key(*other));
     record_attempt(rec, *other, "search", res.accepted, res.reason);
     if (res.accepted) {
-      registry_.put_edge(make_edge(*other, rec, res));
+      accept_edge(make_edge(*other, rec, res));
       on_new_alignment(rec.robot_id, true);
       return;
     }
@@ -206,11 +219,12 @@ bool Pipeline::refine_known(const RobotRecord& rec) {
     if (e.source != rec.robot_id) continue;
     const auto target = prepared(e.target, false);
     if (!target) continue;
+    spdlog::debug("merge {} <- {}: refinement started", e.target, e.source);
     const auto t0 = std::chrono::steady_clock::now();
     const align::AlignResult res = align_local(*target, *me, e.T_target_source, config_.align);
     report({e.target, e.source, res.accepted, false, res.fitness, seconds_since(t0), res.reason, unix_now()});
     if (!res.accepted) continue;
-    if (const auto target_rec = registry_.get(e.target)) registry_.put_edge(make_edge(*target_rec, rec, res));
+    if (const auto target_rec = registry_.get(e.target)) accept_edge(make_edge(*target_rec, rec, res));
     refined = true;
     moved |= moved_noticeably(e.T_target_source, res.T_target_source);
   }
@@ -225,15 +239,41 @@ bool Pipeline::moved_noticeably(const Eigen::Matrix4d& before, const Eigen::Matr
 
 void Pipeline::persist_edges() {
   if (store_ == nullptr) return;
-  try {
-    store_->save_alignment(registry_.reference(), registry_.edges(), registry_.edge_verdicts());
-  } catch (const StoreError& e) {
-    spdlog::error("alignment kept in memory only, store failed: {}", e.what());
+  std::lock_guard<std::mutex> lock(alignment_mutex_);
+  store_->save_alignment(registry_.reference(), registry_.edges(), registry_.edge_verdicts());  // logs failures
+}
+
+void Pipeline::accept_edge(const Edge& edge) {
+  // Stored before the registry (and so the published poses) shows it; one edge set at a time.
+  std::lock_guard<std::mutex> lock(alignment_mutex_);
+  if (store_ != nullptr) {
+    std::vector<Edge> edges;
+    for (const Edge& e : registry_.edges()) {
+      const bool same_pair = (e.target == edge.target && e.source == edge.source) ||
+                             (e.target == edge.source && e.source == edge.target);
+      if (!same_pair) edges.push_back(e);
+    }
+    edges.push_back(edge);
+    if (!store_->save_alignment(registry_.reference(), edges, registry_.edge_verdicts())) {
+      spdlog::error("alignment {} <- {} served from memory only until the store works again", edge.target,
+                    edge.source);
+    }
   }
+  registry_.put_edge(edge);
+}
+
+void Pipeline::store_edges_without(const std::string& robot) {
+  if (store_ == nullptr) return;
+  std::lock_guard<std::mutex> lock(alignment_mutex_);
+  std::vector<Edge> edges;
+  for (const Edge& e : registry_.edges()) {
+    if (e.target != robot && e.source != robot) edges.push_back(e);
+  }
+  store_->save_alignment(registry_.reference(), edges, registry_.edge_verdicts());
 }
 
 void Pipeline::on_new_alignment(const std::string& robot, bool joined) {
-  persist_edges();
+  persist_edges();  // the graph's verdicts of the new edge set
   if (hooks_.changed) hooks_.changed();
   if (hooks_.more_idle_work) hooks_.more_idle_work();
   if (!joined) return;  // the aligned group did not grow: nothing new to try the others against

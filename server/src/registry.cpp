@@ -301,4 +301,19 @@ RobotStatus Registry::status(const std::string& robot) const {
   return RobotStatus::kUnknown;
 }
 
+bool Registry::set_alive(const std::string& robot, bool alive) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  Presence& p = presence_[robot];
+  if (p.alive == alive) return false;
+  p.alive = alive;
+  if (!alive) ++p.times_lost;
+  return true;
+}
+
+Registry::Presence Registry::presence(const std::string& robot) const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  const auto it = presence_.find(robot);
+  return it == presence_.end() ? Presence{} : it->second;
+}
+
 }  // namespace mapmerge::server

@@ -43,6 +43,7 @@ Server::Server(ServerConfig config) : config_(std::move(config)) {
     cv_.notify_all();
   };
   callbacks.on_discovery = [this] { cv_.notify_all(); };
+  callbacks.on_presence = [this](const std::string& robot, bool alive) { on_presence(robot, alive); };
   dds_ = std::make_unique<DdsIo>(config_.network, callbacks);
   spdlog::info("serving on domain {} with profile {}{}", config_.network.domain, config_.network.profile,
                config_.network.discovery_server.empty() ? "" : " via discovery server " + config_.network.discovery_server);
@@ -73,9 +74,46 @@ void Server::restore() {
     version_ = snap.global->version;
     last_global_ = std::move(snap.global);
   }
+  for (const MapSample& m : snap.maps) {
+    spdlog::info("robot {} restored: map {}/{} ({})", m.topic_robot, m.session_id, m.sequence,
+                 to_string(registry_.status(m.topic_robot)));
+  }
+  if (!global_is_current()) {
+    // Maps stored after the last global map (a crash before it was built): build it again now,
+    // robots republishing the same maps would be ignored as duplicates.
+    dirty_ = true;
+  }
   spdlog::info("restored {} robots, {} alignments ({} rejected by the pose graph), {} pairs tried, global map "
                "version {} from {}", snap.maps.size(), snap.edges.size(), registry_.rejected_edges().size(),
                snap.attempts.size(), version_, store_->path());
+}
+
+bool Server::global_is_current() const {
+  const auto poses = registry_.poses();
+  if (!last_global_) return poses.empty();
+  std::size_t matched = 0;
+  for (const Contribution& c : last_global_->contributors) {
+    const auto rec = registry_.get(c.robot_id);
+    if (!rec || poses.count(c.robot_id) == 0 || rec->session_id != c.session_id || rec->sequence != c.sequence) {
+      return false;
+    }
+    ++matched;
+  }
+  return matched == poses.size();
+}
+
+void Server::on_presence(const std::string& robot, bool alive) {
+  if (!registry_.set_alive(robot, alive)) return;
+  if (alive) {
+    spdlog::info("robot {} present: a writer of its map topic matched", robot);
+  } else {
+    spdlog::warn("robot {} lost: no writer of its map topic left (it left, or its lease expired); its map {}", robot,
+                 config_.merge.keep_lost_maps ? "stays in the global map" : "is left out of the global map");
+  }
+  if (!config_.merge.keep_lost_maps && registry_.get(robot)) {
+    dirty_ = true;  // the global map changes: the robot leaves it, or comes back
+    cv_.notify_all();
+  }
 }
 
 void Server::on_map(MapSample sample) {
@@ -122,6 +160,10 @@ void Server::loop_once() {
   } else if (requested_.exchange(false) || now - last_republish_ >= seconds(config_.publish.republish_period_s)) {
     republish();
   }
+  if (store_ && now - last_store_retry_ >= seconds(config_.store.retry_period_s)) {
+    last_store_retry_ = now;
+    store_->retry();  // writes that failed (disk full, read-only): logged and on the status topic
+  }
   if (now - last_status_ >= seconds(config_.publish.status_period_s)) publish_status();
 }
 
@@ -132,12 +174,8 @@ void Server::publish_global() {
   const auto t_built = Clock::now();
   version_ = global->version;
   const auto poses = current_poses();
-  if (store_) {
-    try {
-      store_->save_global(*global, poses);
-    } catch (const StoreError& e) {
-      spdlog::error("global map {} kept in memory only, store failed: {}", version_, e.what());
-    }
+  if (store_ && !store_->save_global(*global, poses)) {
+    spdlog::error("global map {} served from memory only until the store works again", version_);
   }
   const auto t_stored = Clock::now();
   last_global_ = std::move(global);
@@ -177,8 +215,16 @@ void Server::publish_status() {
     const RobotStatus st = registry_.status(rec->robot_id);
     const PoseState ps = st == RobotStatus::kAligned ? PoseState::kAligned
                          : st == RobotStatus::kRejected ? PoseState::kRejected : PoseState::kUnknown;
-    s.robots.push_back({rec->robot_id, ps, rec->session_id, rec->sequence, rec->resolution,
-                        rec->updates_accepted, rec->updates_rejected, rec->last_error});
+    const Registry::Presence presence = registry_.presence(rec->robot_id);
+    s.robots.push_back({rec->robot_id, ps, rec->session_id, rec->sequence, rec->resolution, rec->updates_accepted,
+                        rec->updates_rejected, rec->last_error, presence.alive, presence.times_lost});
+  }
+  if (store_) {
+    const StoreHealth h = store_->health();
+    s.store_ok = h.ok;
+    s.store_error = h.error;
+    s.store_failures = h.failures;
+    s.store_pending = h.pending;
   }
   s.recent_merges = pipeline_->recent_merges();
   for (const auto& e : registry_.rejected_edges()) {  // left out of the fleet pose graph
@@ -197,6 +243,8 @@ void Server::publish_status() {
   s.updates_rejected = c.updates_rejected;
   s.merges_run = c.merges_run;
   s.merges_coalesced = sched.coalesced;
+  s.merges_queued = sched.queued;
+  s.merges_queued_max = sched.max_queued;
   dds_->publish_status(s);
 }
 

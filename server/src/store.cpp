@@ -7,6 +7,7 @@
 #include <utility>
 
 #include <nlohmann/json.hpp>
+#include <spdlog/spdlog.h>
 
 #include "sqlite_stmt.hpp"
 
@@ -124,7 +125,107 @@ void Store::transaction(const std::function<void()>& body) {
   }
 }
 
-void Store::save_map(const MapSample& m) {
+bool Store::attempt(const std::string& what, const std::function<void()>& write) {
+  try {
+    write();
+    settle();
+    return true;
+  } catch (const StoreError& e) {
+    ++health_.failures;
+    health_.ok = false;
+    health_.error = e.what();
+    spdlog::error("state store: {} not written, kept in memory until the store works again: {}", what, e.what());
+    return false;
+  }
+}
+
+bool Store::save_map(const MapSample& m) {
+  std::lock_guard<std::recursive_mutex> lock(mutex_);
+  pending_.maps.erase(m.robot_id);  // superseded
+  if (attempt("map of robot " + m.robot_id, [&] { write_map(m); })) return true;
+  pending_.maps[m.robot_id] = m;
+  health_.pending = pending_.size();
+  return false;
+}
+
+bool Store::touch_map(const std::string& robot, const std::string& session, std::uint64_t sequence,
+                      double received_unix) {
+  std::lock_guard<std::recursive_mutex> lock(mutex_);
+  if (auto it = pending_.maps.find(robot); it != pending_.maps.end()) {  // its bytes are not written yet
+    it->second.sequence = sequence;
+    it->second.received_unix = received_unix;
+    return false;
+  }
+  return attempt("sequence of robot " + robot, [&] {
+    transaction([&] {
+      Stmt s(db_, "UPDATE robots SET sequence=?, received=? WHERE robot_id=? AND session_id=?");
+      s.bind(1, static_cast<std::int64_t>(sequence)).bind(2, received_unix).bind(3, robot).bind(4, session).run();
+    });
+  });
+}
+
+bool Store::save_alignment(const std::string& reference, const std::vector<Edge>& edges,
+                           const std::vector<EdgeVerdict>& verdicts) {
+  std::lock_guard<std::recursive_mutex> lock(mutex_);
+  pending_.alignment.reset();  // superseded
+  if (attempt("alignment", [&] { write_alignment(reference, edges, verdicts); })) return true;
+  pending_.alignment.emplace(PendingAlignment{reference, edges, verdicts});
+  health_.pending = pending_.size();
+  return false;
+}
+
+bool Store::save_global(const GlobalMapOut& g, const std::vector<PoseOut>& poses) {
+  std::lock_guard<std::recursive_mutex> lock(mutex_);
+  pending_.global.reset();  // superseded
+  if (attempt("global map " + std::to_string(g.version), [&] { write_global(g, poses); })) return true;
+  pending_.global.emplace(g, poses);
+  health_.pending = pending_.size();
+  return false;
+}
+
+bool Store::retry() {
+  std::lock_guard<std::recursive_mutex> lock(mutex_);
+  const std::size_t before = pending_.size();
+  if (before == 0) return true;
+  // Maps first, then alignments, then the global map that was built from them.
+  for (auto it = pending_.maps.begin(); it != pending_.maps.end();) {
+    const MapSample& m = it->second;
+    if (!attempt("map of robot " + m.robot_id, [&] { write_map(m); })) return false;
+    it = pending_.maps.erase(it);
+  }
+  if (pending_.alignment) {
+    const PendingAlignment& a = *pending_.alignment;
+    if (!attempt("alignment", [&] { write_alignment(a.reference, a.edges, a.verdicts); })) {
+      return false;
+    }
+    pending_.alignment.reset();
+  }
+  if (pending_.global) {
+    const auto& [g, poses] = *pending_.global;
+    if (!attempt("global map " + std::to_string(g.version), [&] { write_global(g, poses); })) return false;
+    pending_.global.reset();
+  }
+  spdlog::info("state store: {} pending writes persisted", before);
+  settle();
+  return true;
+}
+
+void Store::settle() {
+  health_.pending = pending_.size();
+  if (health_.ok || health_.pending != 0) return;
+  health_.ok = true;
+  health_.error.clear();
+  spdlog::warn("state store works again: everything held in memory is persisted to {}", path_);
+}
+
+StoreHealth Store::health() const {
+  std::lock_guard<std::recursive_mutex> lock(mutex_);
+  StoreHealth h = health_;
+  h.pending = pending_.size();
+  return h;
+}
+
+void Store::write_map(const MapSample& m) {
   transaction([&] {
     Stmt s(db_, "INSERT OR REPLACE INTO robots VALUES(?,?,?,?,?,?,?,?,?,?,?)");
     s.bind(1, m.robot_id).bind(2, m.session_id).bind(3, static_cast<std::int64_t>(m.sequence));
@@ -135,8 +236,8 @@ void Store::save_map(const MapSample& m) {
   });
 }
 
-void Store::save_alignment(const std::string& reference, const std::vector<Edge>& edges,
-                           const std::vector<EdgeVerdict>& verdicts) {
+void Store::write_alignment(const std::string& reference, const std::vector<Edge>& edges,
+                            const std::vector<EdgeVerdict>& verdicts) {
   std::map<std::pair<std::string, std::string>, const EdgeVerdict*> verdict;
   for (const EdgeVerdict& v : verdicts) verdict[{v.target, v.source}] = &v;
   transaction([&] {
@@ -167,7 +268,7 @@ void Store::save_attempt(const PairAttempt& a) {
   });
 }
 
-void Store::save_global(const GlobalMapOut& g, const std::vector<PoseOut>& poses) {
+void Store::write_global(const GlobalMapOut& g, const std::vector<PoseOut>& poses) {
   transaction([&] {
     Stmt s(db_, "INSERT OR REPLACE INTO global_map VALUES(1,?,?,?,?,?,?,?,?)");
     s.bind(1, static_cast<std::int64_t>(g.version)).bind(2, g.stamp_unix).bind(3, g.frame_id);

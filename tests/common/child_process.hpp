@@ -12,6 +12,7 @@
 #include <thread>
 #include <vector>
 
+#include <fcntl.h>
 #include <sys/prctl.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -23,10 +24,15 @@ struct Logs {
   std::string out;      ///< stdout (and stderr when `err` is empty)
   std::string err;      ///< stderr; empty: with stdout
   bool append = true;   ///< add to the files (a restarted server's log) or start them empty
+  /// Combined output through a pipe that the parent copies into `out`: the child's own file
+  /// limits (RLIMIT_FSIZE) then never apply to its log.
+  bool piped = false;
   /// stdout and stderr interleaved in one file, appended to (restarts share a log).
-  static Logs combined(const std::string& path) { return Logs{path, "", true}; }
+  static Logs combined(const std::string& path) { return Logs{path, "", true, false}; }
+  /// As combined(), through a pipe.
+  static Logs combined_piped(const std::string& path) { return Logs{path, "", true, true}; }
   /// <prefix>.out and <prefix>.err, started empty (tests that parse the output of one run).
-  static Logs split(const std::string& prefix) { return Logs{prefix + ".out", prefix + ".err", false}; }
+  static Logs split(const std::string& prefix) { return Logs{prefix + ".out", prefix + ".err", false, false}; }
 };
 
 class ChildProcess {
@@ -35,6 +41,8 @@ class ChildProcess {
   ChildProcess(const std::string& program, const std::vector<std::string>& args, Logs logs) : logs_(std::move(logs)) {
     std::vector<std::string> argv_s{program};
     argv_s.insert(argv_s.end(), args.begin(), args.end());
+    int pipe_fds[2] = {-1, -1};
+    if (logs_.piped && ::pipe2(pipe_fds, O_CLOEXEC) != 0) pipe_fds[0] = pipe_fds[1] = -1;
     pid_ = ::fork();
     if (pid_ == 0) {
       ::setpgid(0, 0);
@@ -43,15 +51,32 @@ class ChildProcess {
       for (auto& a : argv_s) argv.push_back(a.data());
       argv.push_back(nullptr);
       const char* mode = logs_.append ? "a" : "w";
-      if (FILE* out = std::fopen(logs_.out.c_str(), mode)) ::dup2(fileno(out), STDOUT_FILENO);
+      if (pipe_fds[1] >= 0) {
+        ::dup2(pipe_fds[1], STDOUT_FILENO);
+        ::close(pipe_fds[0]);
+      } else if (FILE* out = std::fopen(logs_.out.c_str(), mode)) {
+        ::dup2(fileno(out), STDOUT_FILENO);
+      }
       FILE* err = logs_.err.empty() ? nullptr : std::fopen(logs_.err.c_str(), mode);
       ::dup2(err != nullptr ? fileno(err) : STDOUT_FILENO, STDERR_FILENO);
       ::execvp(argv_s[0].c_str(), argv.data());
       ::_exit(127);
     }
     if (pid_ > 0) ::setpgid(pid_, pid_);
+    if (pipe_fds[1] >= 0) {
+      ::close(pipe_fds[1]);
+      copier_ = std::thread([fd = pipe_fds[0], path = logs_.out] {
+        std::ofstream out(path, std::ios::app);
+        char buf[4096];
+        for (ssize_t n; (n = ::read(fd, buf, sizeof buf)) > 0;) out.write(buf, n).flush();
+        ::close(fd);
+      });
+    }
   }
-  ~ChildProcess() { kill(SIGKILL); }
+  ~ChildProcess() {
+    kill(SIGKILL);
+    if (copier_.joinable()) copier_.join();  // EOF once the child is gone
+  }
   ChildProcess(const ChildProcess&) = delete;
   ChildProcess& operator=(const ChildProcess&) = delete;
 
@@ -102,6 +127,7 @@ class ChildProcess {
     return ss.str();
   }
   Logs logs_;
+  std::thread copier_;  ///< piped logs: copies the child's output into the log file
   pid_t pid_ = -1;
   bool exited_ = false;
   int code_ = -1;
@@ -109,11 +135,12 @@ class ChildProcess {
 
 inline std::string server_binary() { return std::string(MAPMERGE_BINARY_DIR) + "/bin/mapmerge-server"; }
 
-/// mapmerge-server of this build, its output in one log file.
+/// mapmerge-server of this build, its output in one log file (through a pipe: file size limits
+/// set on the server for a test never cut its log).
 class ServerProcess : public ChildProcess {
  public:
   ServerProcess(const std::vector<std::string>& args, const std::string& log_path)
-      : ChildProcess(server_binary(), args, Logs::combined(log_path)) {}
+      : ChildProcess(server_binary(), args, Logs::combined_piped(log_path)) {}
 };
 
 }  // namespace mapmerge::test

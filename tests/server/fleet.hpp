@@ -93,6 +93,26 @@ struct ReceivedStatus {
   std::map<std::string, std::uint64_t> sequence;  ///< per robot: sequence number of the map held
   std::map<std::string, std::uint64_t> rejected;  ///< per robot: updates rejected
   std::map<std::string, std::string> last_error;
+  std::map<std::string, std::string> session;     ///< per robot: session of the map held
+  std::map<std::string, std::uint64_t> sequence;  ///< per robot: sequence of the map held
+  std::map<std::string, bool> alive;              ///< per robot: a map writer is matched
+  std::map<std::string, std::uint32_t> times_lost;
+  bool store_ok = true;
+  std::string store_error;
+  std::uint64_t store_failures = 0, store_pending = 0;
+  std::uint64_t merges_queued = 0, merges_queued_max = 0;
+  std::size_t count = 0;                          ///< status samples received
+};
+
+/// What the server has acknowledged to the fleet over everything received (all server runs):
+/// the state a restarted server must still hold.
+struct Acknowledged {
+  /// Per robot and session: the highest sequence the server reported holding (status topic) or
+  /// fused (global map contributors). Key "<robot>/<session>".
+  std::map<std::string, std::uint64_t> sequence;
+  std::map<std::string, Eigen::Matrix4d> aligned_pose;  ///< last aligned pose per robot
+  std::uint64_t global_version = 0;                     ///< highest global map version received
+  std::uint64_t version_regressions = 0;  ///< global maps older than one received before
 };
 
 /// An operator's view: latest global map (native and ROS 2), poses, tf child frames.
@@ -115,6 +135,11 @@ class FleetListener {
   /// Every merge report seen on the status topic (deduplicated by pair, kind and stamp).
   std::vector<ReceivedMerge> merges() const;
   ReceivedStatus status() const;
+  Acknowledged acknowledged() const;
+  /// Called on the DDS thread for every global map with its contributors' sequences; with
+  /// `decode` false the maps are no longer decoded (global() then has no tree): for benches.
+  using GlobalObserver = std::function<void(std::uint64_t version, const std::map<std::string, std::uint64_t>&)>;
+  void observe_globals(GlobalObserver observer, bool decode);
 
   struct Impl;
 

@@ -25,6 +25,14 @@ struct FleetListener::Impl {
   std::vector<ReceivedMerge> merges;
   std::set<std::string> merge_keys;
   ReceivedStatus status;
+  Acknowledged acked;
+  GlobalObserver observer;
+  bool decode_globals = true;
+
+  void acknowledge(const std::string& robot, const std::string& session, std::uint64_t sequence) {
+    std::uint64_t& seq = acked.sequence[robot + "/" + session];
+    seq = std::max(seq, sequence);
+  }
 
   void on_status(const mapmerge::ServerStatus& s) {
     for (const auto& m : s.recent_merges()) {
@@ -44,7 +52,19 @@ struct FleetListener::Impl {
       status.sequence[r.robot_id()] = r.sequence_number();
       status.rejected[r.robot_id()] = r.updates_rejected();
       status.last_error[r.robot_id()] = r.last_error();
+      status.session[r.robot_id()] = r.session_id();
+      status.sequence[r.robot_id()] = r.sequence_number();
+      status.alive[r.robot_id()] = r.alive();
+      status.times_lost[r.robot_id()] = r.times_lost();
+      if (r.sequence_number() > 0) acknowledge(r.robot_id(), r.session_id(), r.sequence_number());
     }
+    status.store_ok = s.store_ok();
+    status.store_error = s.store_error();
+    status.store_failures = s.store_failures();
+    status.store_pending = s.store_pending();
+    status.merges_queued = s.merges_queued();
+    status.merges_queued_max = s.merges_queued_max();
+    ++status.count;
   }
 
   template <class Msg, class F>
@@ -84,19 +104,28 @@ struct FleetListener::Impl {
     r.global_version = p.global_version();
     r.fitness = p.fitness();
     poses[p.robot_id()] = r;
+    if (r.status == 1) acked.aligned_pose[p.robot_id()] = r.T_global_robot;
   }
 
   void on_global(const mapmerge::GlobalMap& g) {
-    auto decoded = decode_map(g.data(), g.encoding(), DecodeLimits{});
-    if (!decoded.ok()) return;
+    if (g.version() < acked.global_version) ++acked.version_regressions;
+    acked.global_version = std::max(acked.global_version, g.version());
+    for (const auto& c : g.contributors()) acknowledge(c.robot_id(), c.session_id(), c.sequence_number());
+    std::shared_ptr<octomap::OcTree> tree;
+    if (decode_globals) {
+      auto decoded = decode_map(g.data(), g.encoding(), DecodeLimits{});
+      if (!decoded.ok()) return;
+      tree = std::shared_ptr<octomap::OcTree>(std::move(decoded.tree));
+    }
     global.version = g.version();
-    global.tree = std::shared_ptr<octomap::OcTree>(std::move(decoded.tree));
+    global.tree = std::move(tree);
     global.contributors.clear();
     global.contributor_sequence.clear();
     for (const auto& c : g.contributors()) {
       global.contributors.push_back(c.robot_id());
       global.contributor_sequence[c.robot_id()] = c.sequence_number();
     }
+    if (observer) observer(global.version, global.contributor_sequence);
     global.received = std::chrono::steady_clock::now();
     ++globals;
   }
@@ -179,6 +208,16 @@ std::vector<ReceivedMerge> FleetListener::merges() const {
 ReceivedStatus FleetListener::status() const {
   std::lock_guard<std::mutex> lock(impl_->mutex);
   return impl_->status;
+}
+void FleetListener::observe_globals(GlobalObserver observer, bool decode) {
+  std::lock_guard<std::mutex> lock(impl_->mutex);
+  impl_->observer = std::move(observer);
+  impl_->decode_globals = decode;
+}
+
+Acknowledged FleetListener::acknowledged() const {
+  std::lock_guard<std::mutex> lock(impl_->mutex);
+  return impl_->acked;
 }
 
 }  // namespace mapmerge::test

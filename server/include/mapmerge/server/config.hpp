@@ -36,6 +36,8 @@ struct MergeConfig {
   bool extra_global_fallback = true;  ///< an extra pair whose local refinement (from the pose estimates)
                                       ///< fails gets a global search
   int extra_max_jobs = 0;            ///< extra pairs aligned at once [count]; 0: threads - 1 (at least 1)
+  bool keep_lost_maps = true;        ///< a robot whose writers are gone (left, or lease expired) stays
+                                     ///< fused in the global map (false: left out until it returns)
 };
 
 /// When the global map and poses go out (read by the server's main loop).
@@ -50,6 +52,7 @@ struct PublishConfig {
 struct StoreConfig {
   std::string state_dir;             ///< directory of state.sqlite; empty: no persistence
   bool synchronous_full = true;      ///< SQLite synchronous=FULL (else NORMAL: safe for crashes, not power loss)
+  double retry_period_s = 2.0;       ///< while writes failed (disk full, read-only), retry them this often [s]
 };
 
 struct ServerConfig {

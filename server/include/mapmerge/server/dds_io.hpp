@@ -19,6 +19,9 @@ class DdsIo {
     std::function<void(MapSample)> on_map;                       ///< a robot map arrived
     std::function<void(const std::string& requester)> on_request;  ///< someone asked for a republish
     std::function<void()> on_discovery;                          ///< a robot topic appeared: call service()
+    /// The robot's first map writer matched (true), or its last one went (false: it left, or its
+    /// participant's lease expired). Works alike for every vendor's robots (DDS discovery).
+    std::function<void(const std::string& robot, bool alive)> on_presence;
   };
 
   /// Creates the participant and the server's writers/readers. Throws wire::DdsError.

@@ -75,6 +75,8 @@ struct RobotStateOut {
   std::uint64_t accepted = 0;
   std::uint64_t rejected = 0;
   std::string last_error;
+  bool alive = false;            ///< a writer of its map topic is matched
+  std::uint32_t times_lost = 0;  ///< how often it was lost since start
 };
 
 struct StatusOut {
@@ -85,6 +87,12 @@ struct StatusOut {
   std::uint64_t updates_rejected = 0;
   std::uint64_t merges_run = 0;
   std::uint64_t merges_coalesced = 0;
+  bool store_ok = true;              ///< the last store write succeeded (or no store)
+  std::string store_error;           ///< why the store failed
+  std::uint64_t store_failures = 0;  ///< failed store writes since start
+  std::uint64_t store_pending = 0;   ///< writes held in memory until the store works again
+  std::uint64_t merges_queued = 0;   ///< robots waiting for a worker now
+  std::uint64_t merges_queued_max = 0;  ///< most robots ever waiting at once
 };
 
 double unix_now();

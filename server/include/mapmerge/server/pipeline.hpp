@@ -70,6 +70,11 @@ class Pipeline {
 
  private:
   bool ingest(const MapSample& map, bool persist);
+  /// The robot's map of the same session with the same bytes again: records the new sequence
+  /// (store first, then registry) and returns true; nothing is decoded.
+  bool unchanged(const MapSample& map);
+  /// Stores the edge set with `edge`, then installs `edge` in the registry.
+  void accept_edge(const Edge& edge);
   void warn_on_resolution(const std::string& robot, double resolution) const;
   void place(const std::string& robot);
   /// Refines the robot's own edges; true when a transform moved noticeably.
@@ -80,8 +85,10 @@ class Pipeline {
   /// them: a known robot's refinement prepares stages 1-2 only (faster, smaller).
   std::shared_ptr<const align::PreparedMap> prepared(const std::string& robot, bool features);
   void refine_turn(const std::string& robot);
-  /// Persists alignments, asks for a republish and, when `joined` (the aligned group grew),
-  /// a retry of every unaligned robot.
+  /// Stores the reference and the registry's edges except those of `robot`.
+  void store_edges_without(const std::string& robot);
+  /// Asks for a republish and, when `joined` (the aligned group grew), a retry of every
+  /// unaligned robot.
   void on_new_alignment(const std::string& robot, bool joined);
   void report(MergeReportOut report);
   void persist_edges();
@@ -107,6 +114,7 @@ class Pipeline {
   Store* store_;
   Hooks hooks_;
   std::atomic<std::uint64_t> accepted_{0}, rejected_{0}, merges_{0}, extra_tried_{0}, extra_added_{0};
+  std::mutex alignment_mutex_;  ///< one edge set written and installed at a time
   struct OverlapEstimate {
     std::size_t target_hash = 0, source_hash = 0;
     Eigen::Matrix4d T_target_source = Eigen::Matrix4d::Identity();

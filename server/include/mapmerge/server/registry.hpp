@@ -84,6 +84,15 @@ class Registry {
   std::vector<EdgeVerdict> rejected_edges() const;
   RobotStatus status(const std::string& robot) const;
 
+  /// Whether a writer of the robot's map topic is matched, and how often it was lost.
+  struct Presence {
+    bool alive = false;
+    std::uint32_t times_lost = 0;
+  };
+  /// Records that the robot's writers came (alive) or all went; returns false when nothing changed.
+  bool set_alive(const std::string& robot, bool alive);
+  Presence presence(const std::string& robot) const;
+
  private:
   struct Seen {
     std::string session;
@@ -96,6 +105,7 @@ class Registry {
 
   mutable std::mutex mutex_;
   std::map<std::string, Seen> seen_;
+  std::map<std::string, Presence> presence_;
   std::map<std::string, std::shared_ptr<RobotRecord>> records_;
   std::map<std::pair<std::string, std::string>, Edge> edges_;
   std::string reference_;

@@ -38,7 +38,12 @@ class Server {
  private:
   using Clock = std::chrono::steady_clock;
   void restore();
+  /// Whether the last global map holds exactly the registry's aligned robots' current maps.
+  bool global_is_current() const;
   void on_map(MapSample sample);
+  /// A robot's map writers came or went (DDS discovery): status, log, and with
+  /// merge.keep_lost_maps false a new global map without (or again with) it.
+  void on_presence(const std::string& robot, bool alive);
   void loop_once();
   void publish_global();
   void republish();
@@ -62,7 +67,7 @@ class Server {
   std::atomic<std::uint64_t> ignored_{0};
   std::uint64_t version_ = 0;
   std::optional<GlobalMapOut> last_global_;
-  Clock::time_point last_build_{}, last_republish_{}, last_status_{};
+  Clock::time_point last_build_{}, last_republish_{}, last_status_{}, last_store_retry_{};
 };
 
 }  // namespace mapmerge::server

@@ -3,8 +3,15 @@
 /// maps as received, accepted alignments with their quality and the pose graph's verdict, pairs
 /// tried, the reference, the last global map and its poses.
 /// Every save is one transaction, so a kill at any moment loses at most the save under way.
+///
+/// A write that fails (disk full, file size limit, read-only directory, I/O error) loses
+/// nothing in memory: the store keeps the latest unwritten map of each robot, alignment and
+/// global map (newer ones replace older), reports itself unhealthy, and retry() writes them
+/// when the disk works again. A failed transaction is rolled back: the file stays consistent.
 
+#include <cstdint>
 #include <functional>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -36,6 +43,14 @@ struct StoreSnapshot {
   std::vector<PoseOut> poses;          ///< the poses published with it
 };
 
+/// Whether the store keeps up (published on the status topic).
+struct StoreHealth {
+  bool ok = true;                ///< the last write succeeded
+  std::string error;             ///< reason of the last failure while not ok
+  std::uint64_t failures = 0;    ///< failed writes since start
+  std::uint64_t pending = 0;     ///< writes held in memory for retry()
+};
+
 class Store {
  public:
   /// Opens (creating if needed) <state_dir>/state.sqlite. Throws StoreError.
@@ -44,25 +59,52 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  void save_map(const MapSample& map);
+  // Each save returns false when the write failed; the data is then pending (see above).
+  bool save_map(const MapSample& map);
+  /// Records a new (sequence, arrival) of the robot's map held, whose bytes did not change.
+  bool touch_map(const std::string& robot, const std::string& session, std::uint64_t sequence, double received_unix);
   /// The reference and every edge (quality, information, the graph's verdict), replacing the
   /// stored ones: one transaction.
-  void save_alignment(const std::string& reference, const std::vector<Edge>& edges,
+  bool save_alignment(const std::string& reference, const std::vector<Edge>& edges,
                       const std::vector<EdgeVerdict>& verdicts = {});
-  /// Records a try of a pair (replacing the pair's previous one).
+  /// Records a try of a pair (replacing the pair's previous one). Throws StoreError.
   void save_attempt(const PairAttempt& attempt);
-  void save_global(const GlobalMapOut& global, const std::vector<PoseOut>& poses);
+  bool save_global(const GlobalMapOut& global, const std::vector<PoseOut>& poses);
+  /// Writes what is pending; true when nothing is left.
+  bool retry();
+  StoreHealth health() const;
   StoreSnapshot load();
   std::string path() const { return path_; }
 
  private:
+  struct PendingAlignment {
+    std::string reference;
+    std::vector<Edge> edges;
+    std::vector<EdgeVerdict> verdicts;
+  };
+  struct Pending {
+    std::map<std::string, MapSample> maps;  ///< robot -> latest unwritten map
+    std::optional<PendingAlignment> alignment;
+    std::optional<std::pair<GlobalMapOut, std::vector<PoseOut>>> global;
+    std::size_t size() const { return maps.size() + (alignment ? 1 : 0) + (global ? 1 : 0); }
+  };
   void exec(const char* sql);
   void migrate();
   void transaction(const std::function<void()>& body);
+  void write_map(const MapSample& m);
+  void write_alignment(const std::string& reference, const std::vector<Edge>& edges,
+                       const std::vector<EdgeVerdict>& verdicts);
+  void write_global(const GlobalMapOut& g, const std::vector<PoseOut>& poses);
+  /// Runs `write`; on failure records it (logged, counted) and returns false.
+  bool attempt(const std::string& what, const std::function<void()>& write);
+  /// Healthy again once nothing is pending (logged once).
+  void settle();
 
   std::string path_;
   sqlite3* db_ = nullptr;
-  std::recursive_mutex mutex_;  ///< one transaction at a time on the one connection
+  mutable std::recursive_mutex mutex_;  ///< one transaction at a time on the one connection; guards the rest
+  Pending pending_;
+  StoreHealth health_;
 };
 
 }  // namespace mapmerge::server
