@@ -120,12 +120,12 @@ class MapReaderListener : public fdds::DataReaderListener {
 
  private:
   MapSample convert_sample(const mapmerge::MapUpdate& m) { return convert::from_native(m, topic_.name, topic_.robot); }
-  MapSample convert_sample(const OctomapMsg& m) { return convert::from_ros(m, topic_.name, topic_.robot, ++ros_sequence_); }
+  /// ROS 2 maps carry no sequence number: the server numbers them on arrival (Server::on_map).
+  MapSample convert_sample(const OctomapMsg& m) { return convert::from_ros(m, topic_.name, topic_.robot, 0); }
 
   RobotTopic topic_;
   std::function<void(MapSample)> sink_;
   Presence& presence_;
-  std::uint64_t ros_sequence_ = 0;
 };
 
 class RequestListener : public fdds::DataReaderListener {

@@ -89,6 +89,12 @@ Admission Registry::admit(const std::string& robot, const std::string& session, 
   return Admission::kNew;
 }
 
+std::uint64_t Registry::next_sequence(const std::string& robot, const std::string& session) const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  const auto it = seen_.find(robot);
+  return it == seen_.end() || it->second.session != session ? 1 : it->second.sequence + 1;
+}
+
 RobotRecord& Registry::mutable_record(const std::string& robot) {
   auto& slot = records_[robot];
   slot = slot ? std::make_shared<RobotRecord>(*slot) : std::make_shared<RobotRecord>();

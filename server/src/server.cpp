@@ -118,6 +118,9 @@ void Server::on_presence(const std::string& robot, bool alive) {
 
 void Server::on_map(MapSample sample) {
   ++received_;
+  // ROS 2 maps carry no sequence number: each is the next after what the registry holds, also
+  // after a restart restored a higher number than this reader counted.
+  if (sample.ros) sample.sequence = registry_.next_sequence(sample.topic_robot, sample.session_id);
   const Admission a = registry_.admit(sample.topic_robot, sample.session_id, sample.sequence);
   if (a == Admission::kDuplicate || a == Admission::kOutOfOrder) {
     ++ignored_;

@@ -301,6 +301,61 @@ TEST_F(ServerFaults, RobotsThatDisappearAreReportedKeptAndResume) {
   clean_shm();
 }
 
+/// Robots of both vendors (mapmerge-robot, publishing once a second) never stop while the
+/// server is killed and started again: the new server hears them again and the fleet is aligned
+/// and fused again, with no one's help.
+TEST_F(ServerFaults, FleetConvergesAfterARestartWhileRobotsKeepPublishing) {
+  auto server = start_run(1);
+  FleetListener op(domain);
+  RobotPublisher r1(domain, "r1");
+  r1.publish(*fleet().robots[0].tree, "s1", 1);
+  auto r2 = cli_robot(dir, domain, 1, "cyclone", 1);
+  auto r3 = cli_robot(dir, domain, 2, "fastdds", 1);
+  ASSERT_TRUE(op.wait_for([&] { return aligned(op, {"r1", "r2", "r3"}) && global_has(op, 3); }, kMergeTimeout))
+      << run_log(1);
+  const auto before = op.status();
+  const auto version = op.global().version;
+  ASSERT_EQ(server->kill(SIGKILL), 128 + SIGKILL);
+  clean_shm();
+  std::this_thread::sleep_for(3s);  // the robots keep publishing to no one
+  server = start_run(2);
+  ASSERT_TRUE(op.wait_for([&] {
+    auto s = op.status();
+    return s.sequence["r2"] > before.sequence.at("r2") + 2 && s.sequence["r3"] > before.sequence.at("r3") + 2 &&
+           s.alive["r2"] && s.alive["r3"] && aligned(op, {"r1", "r2", "r3"}) && op.global().version >= version;
+  }, kMergeTimeout)) << run_log(2);
+  EXPECT_EQ(op.global().contributors.size(), 3u);
+  EXPECT_EQ(op.acknowledged().version_regressions, 0u);
+  EXPECT_EQ(server->kill(SIGTERM), 0) << run_log(2);
+  r2->kill(SIGTERM);
+  r3->kill(SIGTERM);
+}
+
+/// ROS 2 maps carry no sequence number: after a restart restored a ROS 2 robot's map, its next
+/// maps are taken as new (not as old numbers below the restored one).
+TEST_F(ServerFaults, Ros2RobotIsHeardAgainAfterARestart) {
+  auto server = start_run(1);
+  FleetListener op(domain);
+  RobotPublisher r1(domain, "r1");
+  r1.publish(*fleet().robots[0].tree, "s1", 1);
+  RosRobotPublisher r2(domain, "r2");
+  ASSERT_TRUE(op.wait_for([&] {
+    r2.publish(*fleet().robots[1].tree);  // the same map again and again: numbered 1, 2, ... on arrival
+    return aligned(op, {"r1", "r2"}) && op.status().sequence["r2"] >= 5;
+  }, kMergeTimeout)) << run_log(1);
+  ASSERT_EQ(server->kill(SIGKILL), 128 + SIGKILL);
+  const std::uint64_t restored = op.status().sequence["r2"];
+  clean_shm();
+  server = start_run(2);
+  // One new map: a reader counting from 1 again would take it for an old one and ignore it.
+  const auto grown = cut_robot_map(*fleet().world, "r2", strip(4, 27), fleet().robots[1].T_robot_world);
+  r2.publish(*grown.tree);
+  ASSERT_TRUE(op.wait_for([&] { return op.global().contributor_sequence["r2"] > restored; }, kMergeTimeout))
+      << run_log(2);
+  EXPECT_GT(occupied_coverage(*op.global().tree, *grown.tree, fleet().truth(1)), 0.9);
+  EXPECT_EQ(server->kill(SIGTERM), 0) << run_log(2);
+}
+
 TEST_F(ServerFaults, LostRobotsAreLeftOutWhenConfigured) {
   const std::string config = dir + "/drop.yaml";
   std::ofstream(config) << "merge: {keep_lost_maps: false}\npublish: {min_interval_s: 0.1, status_period_s: 0.2}\n";

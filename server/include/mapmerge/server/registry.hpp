@@ -47,6 +47,8 @@ class Registry {
  public:
   /// Decides on (and remembers) an incoming update's key; called before any decoding.
   Admission admit(const std::string& robot, const std::string& session, std::uint64_t sequence);
+  /// The sequence number after the last one admitted for (robot, session); 1 for a new session.
+  std::uint64_t next_sequence(const std::string& robot, const std::string& session) const;
 
   /// Installs an accepted map (record fields other than counters and alignment are replaced).
   void put_map(RobotRecord record);
