@@ -74,6 +74,15 @@ int run_export(const ServerConfig& config, const std::string& prefix) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  // A file size limit (RLIMIT_FSIZE) reached by the state store is a failed write (EFBIG),
+  // reported and retried like a full disk, not the end of the process.
+  std::signal(SIGXFSZ, SIG_IGN);
+  sigset_t set;
+  sigemptyset(&set);
+  sigaddset(&set, SIGINT);
+  sigaddset(&set, SIGTERM);
+  sigaddset(&set, SIGUSR1);
+  pthread_sigmask(SIG_BLOCK, &set, nullptr);  // before any thread starts: all inherit it
   CLI::App app{"mapmerge-server: merges a robot fleet's OctoMaps into one global map over DDS.\n"
                "Exit codes: 0 clean shutdown, 1 runtime error, 2 usage/config error, 3 state store error."};
   Flags f;
@@ -114,15 +123,6 @@ int main(int argc, char** argv) {
     return kUsageError;
   }
   if (!f.export_prefix.empty()) return run_export(config, f.export_prefix);
-  // A file size limit (RLIMIT_FSIZE) reached by the state store is a failed write (EFBIG),
-  // reported and retried like a full disk, not the end of the process.
-  std::signal(SIGXFSZ, SIG_IGN);
-  sigset_t set;
-  sigemptyset(&set);
-  sigaddset(&set, SIGINT);
-  sigaddset(&set, SIGTERM);
-  sigaddset(&set, SIGUSR1);
-  pthread_sigmask(SIG_BLOCK, &set, nullptr);  // before any thread starts: all inherit it
   try {
     mapmerge::server::Server server(config);
     std::thread signals = signal_thread(server, set);

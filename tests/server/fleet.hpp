@@ -94,7 +94,6 @@ struct ReceivedStatus {
   std::map<std::string, std::uint64_t> rejected;  ///< per robot: updates rejected
   std::map<std::string, std::string> last_error;
   std::map<std::string, std::string> session;     ///< per robot: session of the map held
-  std::map<std::string, std::uint64_t> sequence;  ///< per robot: sequence of the map held
   std::map<std::string, bool> alive;              ///< per robot: a map writer is matched
   std::map<std::string, std::uint32_t> times_lost;
   bool store_ok = true;

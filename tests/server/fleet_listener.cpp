@@ -53,7 +53,6 @@ struct FleetListener::Impl {
       status.rejected[r.robot_id()] = r.updates_rejected();
       status.last_error[r.robot_id()] = r.last_error();
       status.session[r.robot_id()] = r.session_id();
-      status.sequence[r.robot_id()] = r.sequence_number();
       status.alive[r.robot_id()] = r.alive();
       status.times_lost[r.robot_id()] = r.times_lost();
       if (r.sequence_number() > 0) acknowledge(r.robot_id(), r.session_id(), r.sequence_number());
