@@ -425,7 +425,7 @@ void Pipeline::align_extra_pair(const ExtraPair& p) {
   record_attempt(*t, *s, "extra", res.accepted, res.reason);
   done();
   if (!res.accepted) return;
-  registry_.put_edge(make_edge(*t, *s, res));
+  accept_edge(make_edge(*t, *s, res));
   ++extra_added_;
   on_new_alignment(p.source, false);
 }
