@@ -13,10 +13,11 @@
 
 #include <CLI/CLI.hpp>
 
+#include "child_process.hpp"
 #include "fleet.hpp"
 #include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/map_codec.hpp"
-#include "child_process.hpp"
+#include "proc_stats.hpp"
 
 namespace mt = mapmerge::test;
 using Clock = std::chrono::steady_clock;
@@ -96,22 +97,6 @@ std::vector<BenchRobot> make_robots(const octomap::OcTree& world, int n, double 
   return robots;
 }
 
-/// utime + stime [s] and VmHWM [MB] of a live process.
-std::pair<double, double> usage(pid_t pid) {
-  std::ifstream stat("/proc/" + std::to_string(pid) + "/stat");
-  std::string s((std::istreambuf_iterator<char>(stat)), std::istreambuf_iterator<char>());
-  std::istringstream rest(s.substr(s.rfind(')') + 2));
-  std::vector<std::string> f((std::istream_iterator<std::string>(rest)), std::istream_iterator<std::string>());
-  const double ticks = static_cast<double>(sysconf(_SC_CLK_TCK));
-  const double cpu = f.size() > 12 ? (std::stod(f[11]) + std::stod(f[12])) / ticks : 0.0;
-  std::ifstream status("/proc/" + std::to_string(pid) + "/status");
-  double hwm_mb = 0;
-  for (std::string line; std::getline(status, line);) {
-    if (line.rfind("VmHWM:", 0) == 0) hwm_mb = std::stod(line.substr(6)) / 1024.0;
-  }
-  return {cpu, hwm_mb};
-}
-
 int aligned_count(const mt::FleetListener& op) {
   int n = 0;
   for (const auto& [id, p] : op.poses()) n += p.status == 1 ? 1 : 0;
@@ -187,7 +172,9 @@ Result run(const Options& o, int n) {
   std::this_thread::sleep_for(std::chrono::seconds(1));  // discovery settles
   first_alignment(o, r, op, robots, pubs);
   incremental(o, r, op, robots, pubs);
-  std::tie(r.cpu_s, r.peak_rss_mb) = usage(server.pid());
+  const auto stats = mapmerge::bench::proc_stats(server.pid());
+  r.cpu_s = stats.cpu_s;
+  r.peak_rss_mb = stats.hwm_mb;
   server.kill(SIGTERM);
   r.stages = incremental_stages(dir + "/server.log");
   return r;
