@@ -44,6 +44,7 @@ void read_network(const YAML::Node& n, NetworkConfig& c) {
 
 void read_merge(const YAML::Node& n, MergeConfig& c) {
   check_keys(n, "merge", {"threads", "reference", "global_frame", "global_resolution", "refine_known",
+                          "search_blocks_fallback",
                           "refine_republish_translation", "refine_republish_rotation_deg", "extra_pairs",
                           "extra_min_overlap", "extra_overlap_samples", "extra_global_fallback", "extra_max_jobs",
                           "keep_lost_maps"});
@@ -52,6 +53,7 @@ void read_merge(const YAML::Node& n, MergeConfig& c) {
   read(n, "global_frame", c.global_frame, "merge");
   read(n, "global_resolution", c.global_resolution, "merge");
   read(n, "refine_known", c.refine_known, "merge");
+  read(n, "search_blocks_fallback", c.search_blocks_fallback, "merge");
   read(n, "refine_republish_translation", c.refine_republish_translation, "merge");
   read(n, "refine_republish_rotation_deg", c.refine_republish_rotation_deg, "merge");
   read(n, "extra_pairs", c.extra_pairs, "merge");

@@ -195,9 +195,19 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
     const auto target = prepared(other->robot_id, true);
     if (!target) continue;
     spdlog::info("merge {} <- {}: global search started", other->robot_id, rec.robot_id);
-    const auto t0 = std::chrono::steady_clock::now();
-    const align::AlignResult res = align_global(*target, *me, config_.align);
+    auto t0 = std::chrono::steady_clock::now();
+    align::AlignResult res = align_global(*target, *me, config_.align);
     report({other->robot_id, rec.robot_id, res.accepted, true, res.fitness, seconds_since(t0), res.reason, unix_now()});
+    if (!res.accepted && config_.merge.search_blocks_fallback && !config_.align.submodels.enabled &&
+        !(hooks_.cancelled && hooks_.cancelled())) {
+      align::AlignConfig blocks = config_.align;
+      blocks.submodels.enabled = true;
+      spdlog::info("merge {} <- {}: global search again, block by block", other->robot_id, rec.robot_id);
+      t0 = std::chrono::steady_clock::now();
+      res = align_global(*target, *me, blocks);
+      report({other->robot_id, rec.robot_id, res.accepted, true, res.fitness, seconds_since(t0), res.reason,
+              unix_now()});
+    }
     registry_.mark_tried(rec.robot_id, rec.map_revision, tried_key(*other));
     record_attempt(rec, *other, "search", res.accepted, res.reason);
     if (res.accepted) {

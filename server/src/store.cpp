@@ -201,7 +201,8 @@ bool Store::retry() {
     pending_.alignment.reset();
   }
   if (pending_.global) {
-    const auto& [g, poses] = *pending_.global;
+    const GlobalMapOut& g = pending_.global->first;
+    const std::vector<PoseOut>& poses = pending_.global->second;
     if (!attempt("global map " + std::to_string(g.version), [&] { write_global(g, poses); })) return false;
     pending_.global.reset();
   }

@@ -14,3 +14,4 @@ MAPMERGE_DEMO_SKIP_BUILD=1 MAPMERGE_BUILD_DIR="$bin" MAPMERGE_DOMAIN="$domain" M
 grep -q '^PASS: 2 of 2 robots' "$out/demo.txt"
 test -s "$out/demo/global.bt"
 test -s "$out/demo/global.png"
+test -s "$out/demo/global.prov"  # the picture is coloured by robot from the server's provenance

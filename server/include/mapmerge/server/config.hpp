@@ -26,6 +26,9 @@ struct MergeConfig {
   std::string global_frame = "global";  ///< frame id of the global map and poses
   double global_resolution = 0.0;    ///< voxel edge of the global map [m]; 0: the reference's
   bool refine_known = true;          ///< refine a known robot's transform when its map changes
+  bool search_blocks_fallback = true;  ///< a whole-map global search that accepts nothing is run once
+                                       ///< more block by block (the paper's *_DIV: a small overlap is a
+                                       ///< larger share of one block); ignored when align.submodels is on
   double refine_republish_translation = 0.02;  ///< a refinement moving a robot more than this republishes [m]
   double refine_republish_rotation_deg = 0.1;  ///< ... or turning it more than this [deg]
   bool extra_pairs = true;           ///< on spare threads, align aligned robots that share no edge yet but
