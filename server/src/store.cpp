@@ -3,6 +3,7 @@
 #include <cstring>
 #include <filesystem>
 #include <map>
+#include <cstdio>
 #include <set>
 #include <utility>
 
@@ -75,21 +76,95 @@ std::vector<Contribution> contributors_from(const std::string& text) {
 
 }  // namespace
 
-Store::Store(const StoreConfig& config) {
+Store::Store(const StoreConfig& config) : synchronous_full_(config.synchronous_full) {
   std::error_code ec;
   std::filesystem::create_directories(config.state_dir, ec);
   path_ = (std::filesystem::path(config.state_dir) / "state.sqlite").string();
-  if (sqlite3_open(path_.c_str(), &db_) != SQLITE_OK) {
+  if (!std::filesystem::is_directory(config.state_dir)) {  // a wrong path, not a failing disk
+    throw StoreError("state directory '" + config.state_dir + "' does not exist and cannot be created" +
+                     (ec ? ": " + ec.message() : std::string()));
+  }
+  try {
+    open_writable();
+  } catch (const StoreError& e) {
+    // A read-only or full state directory: what is stored is restored read-only, the server
+    // serves from memory, and every write is kept pending and retried (reopening the store).
+    ++health_.failures;
+    health_.ok = false;
+    health_.error = e.what();
+    spdlog::error("state store: {}; serving from memory, new state kept in memory until the store can be "
+                  "written", e.what());
+    open_read_only();
+  }
+}
+
+void Store::open_writable() {
+  close();
+  if (sqlite3_open_v2(path_.c_str(), &db_, SQLITE_OPEN_READWRITE | SQLITE_OPEN_CREATE, nullptr) != SQLITE_OK) {
     const std::string msg = db_ ? sqlite3_errmsg(db_) : "out of memory";
-    sqlite3_close(db_);
-    db_ = nullptr;
+    close();
     throw StoreError("cannot open state store '" + path_ + "': " + msg);
   }
-  sqlite3_busy_timeout(db_, 5000);
-  exec("PRAGMA journal_mode=WAL;");
-  exec(config.synchronous_full ? "PRAGMA synchronous=FULL;" : "PRAGMA synchronous=NORMAL;");
-  exec(kSchema);
-  migrate();
+  if (sqlite3_db_readonly(db_, "main") == 1) {  // SQLite falls back to reading a file it cannot write
+    close();
+    throw StoreError("state store '" + path_ + "' cannot be written (read-only file or file system)");
+  }
+  try {
+    sqlite3_busy_timeout(db_, 5000);
+    exec("PRAGMA journal_mode=WAL;");
+    exec(synchronous_full_ ? "PRAGMA synchronous=FULL;" : "PRAGMA synchronous=NORMAL;");
+    exec(kSchema);
+    migrate();
+  } catch (const StoreError&) {
+    close();
+    throw;
+  }
+  writable_ = true;
+}
+
+void Store::open_read_only() {
+  close();
+  if (!std::filesystem::exists(path_)) return;  // nothing stored yet: nothing to restore
+  // A WAL store in a directory that cannot be written: readable as is while its -shm exists
+  // (a killed server leaves it), else only as an immutable file (a cleanly closed store has
+  // nothing in its WAL).
+  const bool shm = std::filesystem::exists(path_ + "-shm");
+  std::string uri = "file:";
+  for (const char c : path_) {
+    if (c == '%' || c == '?' || c == '#') {
+      char hex[4];
+      std::snprintf(hex, sizeof hex, "%%%02X", static_cast<unsigned char>(c));
+      uri += hex;
+    } else {
+      uri += c;
+    }
+  }
+  if (!shm) uri += "?immutable=1";
+  try {
+    if (sqlite3_open_v2(uri.c_str(), &db_, SQLITE_OPEN_READONLY | SQLITE_OPEN_URI, nullptr) != SQLITE_OK) {
+      throw StoreError(db_ ? sqlite3_errmsg(db_) : "out of memory");
+    }
+    sqlite3_busy_timeout(db_, 5000);
+    std::set<std::string> have;
+    for (Stmt s(db_, "PRAGMA table_info(edges)"); s.step();) have.insert(s.text(1));
+    for (const auto& column : kEdgeColumns) {
+      if (have.count(column.first) == 0) throw StoreError("an older schema (no edges." + std::string(column.first) + ")");
+    }
+    spdlog::warn("state store: '{}' opened read-only: its state is restored, nothing new is written", path_);
+  } catch (const StoreError& e) {
+    spdlog::error("state store: '{}' cannot be read either ({}): starting empty", path_, e.what());
+    close();
+  }
+}
+
+void Store::close() {
+  sqlite3_close(db_);
+  db_ = nullptr;
+  writable_ = false;
+}
+
+void Store::ensure_writable() {
+  if (!writable_) open_writable();  // throws StoreError while it still cannot be written
 }
 
 void Store::migrate() {
@@ -102,7 +177,7 @@ void Store::migrate() {
   }
 }
 
-Store::~Store() { sqlite3_close(db_); }
+Store::~Store() { close(); }
 
 void Store::exec(const char* sql) {
   char* err = nullptr;
@@ -127,6 +202,7 @@ void Store::transaction(const std::function<void()>& body) {
 
 bool Store::attempt(const std::string& what, const std::function<void()>& write) {
   try {
+    ensure_writable();
     write();
     settle();
     return true;
@@ -261,6 +337,8 @@ void Store::write_alignment(const std::string& reference, const std::vector<Edge
 }
 
 void Store::save_attempt(const PairAttempt& a) {
+  std::lock_guard<std::recursive_mutex> lock(mutex_);
+  ensure_writable();
   transaction([&] {
     Stmt s(db_, "INSERT OR REPLACE INTO pair_attempts VALUES(?,?,?,?,?,?,?,?)");
     s.bind(1, a.robot_a).bind(2, a.robot_b).bind(3, a.kind).bind(4, static_cast<std::int64_t>(a.hash_a));
@@ -288,6 +366,7 @@ void Store::write_global(const GlobalMapOut& g, const std::vector<PoseOut>& pose
 StoreSnapshot Store::load() {
   std::lock_guard<std::recursive_mutex> lock(mutex_);
   StoreSnapshot snap;
+  if (db_ == nullptr) return snap;  // nothing could be opened (see the constructor's log)
   for (Stmt s(db_, "SELECT value FROM meta WHERE key='reference'"); s.step();) snap.reference = s.text(0);
   for (Stmt s(db_, "SELECT * FROM robots ORDER BY robot_id"); s.step();) {
     MapSample m;

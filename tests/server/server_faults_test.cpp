@@ -454,5 +454,61 @@ TEST_F(ServerFaults, FullDiskIsReportedServedFromMemoryAndPersistedLater) {
   EXPECT_EQ(server->kill(SIGTERM), 0) << run_log(2);
 }
 
+/// Every file of a directory and its bytes.
+std::map<std::string, std::string> files_of(const std::string& dir) {
+  std::map<std::string, std::string> out;
+  for (const auto& e : std::filesystem::directory_iterator(dir)) out[e.path().filename().string()] = read_file(e.path().string());
+  return out;
+}
+
+/// The state directory is read-only when the server starts (a volume mounted read-only, a file
+/// system remounted read-only after errors): the server restores what is stored, serves robots
+/// from memory, says so on the status topic and in its log, and leaves the store untouched.
+/// Root ignores file modes, so the directory is bind-mounted read-only in a mount namespace of
+/// the server's own (unshare -m).
+TEST_F(ServerFaults, ReadOnlyStateDirectoryIsRestoredServedFromMemoryAndLeftIntact) {
+  if (std::system("unshare -m true >/dev/null 2>&1") != 0) {
+    GTEST_SKIP() << "no mount namespace here (unshare -m): a read-only directory cannot be made for root";
+  }
+  const std::string state = dir + "/state";
+  {
+    auto server = start_run(1);
+    FleetListener op(domain);
+    RobotPublisher r1(domain, "r1"), r2(domain, "r2");
+    r1.publish(*fleet().robots[0].tree, "s1", 1);
+    r2.publish(*fleet().robots[1].tree, "s1", 1);
+    ASSERT_TRUE(op.wait_for([&] {
+      const auto s = op.status();
+      return global_has(op, 2) && aligned(op, {"r1", "r2"}) && s.store_ok && s.store_pending == 0;
+    }, kMergeTimeout)) << run_log(1);
+    ASSERT_EQ(server->kill(SIGTERM), 0) << run_log(1);
+  }
+  ASSERT_EQ(inspect_store(state + "/state.sqlite"), std::make_pair(std::string("ok"), 2));
+  const auto stored = files_of(state);
+
+  std::vector<std::string> args{"-m", "sh", "-c", "mount --bind -o ro \"$0\" \"$0\" && exec \"$@\"", state,
+                                server_binary()};
+  for (const auto& a : server_args({"--config", config_path(), "--reference", "r1", "--log-level", "debug"})) {
+    args.push_back(a);
+  }
+  ChildProcess server("unshare", args, Logs::combined_piped(dir + "/server2.log"));
+  FleetListener op(domain);
+  // Restored from the read-only store, without any robot speaking.
+  ASSERT_TRUE(op.wait_for([&] { return aligned(op, {"r1", "r2"}) && global_has(op, 2); }, 60s)) << run_log(2);
+  EXPECT_NE(run_log(2).find("opened read-only"), std::string::npos) << run_log(2);
+  // A new robot is aligned and fused from memory; the status says the store fails.
+  RobotPublisher r3(domain, "r3");
+  r3.publish(*fleet().robots[2].tree, "s1", 1);
+  ASSERT_TRUE(op.wait_for([&] {
+    const auto s = op.status();
+    return aligned(op, {"r1", "r2", "r3"}) && global_has(op, 3) && !s.store_ok && s.store_pending > 0;
+  }, kMergeTimeout)) << run_log(2);
+  EXPECT_FALSE(op.status().store_error.empty());
+  EXPECT_NE(run_log(2).find("served from memory only"), std::string::npos);
+  EXPECT_TRUE(server.running());
+  EXPECT_EQ(server.kill(SIGTERM), 0) << run_log(2);
+  EXPECT_TRUE(files_of(state) == stored) << "the read-only store changed";
+}
+
 }  // namespace
 }  // namespace mapmerge::test

@@ -90,6 +90,13 @@ class Store {
   };
   void exec(const char* sql);
   void migrate();
+  /// Opens the store for writing (WAL, schema, migration); throws StoreError.
+  void open_writable();
+  /// Opens what is stored read-only (a read-only state directory); db_ stays null if it cannot.
+  void open_read_only();
+  void close();
+  /// Reopens for writing after open_read_only; throws StoreError while that still fails.
+  void ensure_writable();
   void transaction(const std::function<void()>& body);
   void write_map(const MapSample& m);
   void write_alignment(const std::string& reference, const std::vector<Edge>& edges,
@@ -101,7 +108,9 @@ class Store {
   void settle();
 
   std::string path_;
+  bool synchronous_full_ = true;
   sqlite3* db_ = nullptr;
+  bool writable_ = false;  ///< db_ was opened for writing (else read-only or null)
   mutable std::recursive_mutex mutex_;  ///< one transaction at a time on the one connection; guards the rest
   Pending pending_;
   StoreHealth health_;
