@@ -256,12 +256,18 @@ void ClientCore::warn(const std::string& message) { invoke(active_.warning, mess
 
 void ClientCore::check_connection() {
   const bool connected = server_connected();
-  if (connected == was_connected_) return;
-  was_connected_ = connected;
-  // A server that (re)appears gets asked for the current state: transient-local delivery to
-  // late joiners is not guaranteed by every vendor.
-  if (connected && !transport_->write_request(requester_, ++nonce_)) warn("map request could not be written");
-  invoke(active_.connection, connected);
+  if (connected != was_connected_) {
+    was_connected_ = connected;
+    // A server that (re)appears gets asked for the current state (transient-local delivery to
+    // late joiners is not guaranteed by every vendor), once our request writer has matched its
+    // reader: requests are volatile, so one written before that match would be lost.
+    ask_on_connect_ = connected;
+    invoke(active_.connection, connected);
+  }
+  if (ask_on_connect_ && transport_->matched_request_readers() > 0) {
+    ask_on_connect_ = false;
+    if (!transport_->write_request(requester_, ++nonce_)) warn("map request could not be written");
+  }
 }
 
 void ClientCore::deliver_poses(std::deque<Pose>& poses) {

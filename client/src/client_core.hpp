@@ -95,6 +95,7 @@ class ClientCore {
   Callbacks pending_;
   bool callbacks_pending_ = false;
   bool was_connected_ = false;                  // dispatch thread only
+  bool ask_on_connect_ = false;                 // dispatch thread only: a request waits for its reader
   std::uint64_t failures_reported_ = 0;         // dispatch thread only
   std::optional<std::pair<std::uint64_t, std::uint64_t>> last_map_;  // version, payload hash; dispatch thread
   std::chrono::steady_clock::time_point last_failure_warning_;  // dispatch thread only

@@ -138,6 +138,12 @@ class CycloneTransport final : public Transport {
     return std::max(matched_writers(pose_reader_), matched_writers(map_reader_));
   }
 
+  int matched_request_readers() const override {
+    dds_publication_matched_status_t status{};
+    if (request_writer_ <= 0 || dds_get_publication_matched_status(request_writer_, &status) < 0) return 0;
+    return static_cast<int>(status.current_count);
+  }
+
   bool wait_for_acks(std::chrono::milliseconds timeout) override {
     if (map_writer_ <= 0) return true;
     return dds_wait_for_acks(map_writer_, DDS_MSECS(timeout.count())) == DDS_RETCODE_OK;

@@ -149,6 +149,12 @@ class FastddsTransport final : public Transport {
     return request_writer_->write(&s);
   }
 
+  int matched_request_readers() const override {
+    fdds::PublicationMatchedStatus status;
+    if (request_writer_->get_publication_matched_status(status) != ReturnCode_t::RETCODE_OK) return 0;
+    return status.current_count;
+  }
+
   int matched_servers() const override {
     int n = 0;
     fdds::SubscriptionMatchedStatus status;

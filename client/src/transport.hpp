@@ -64,6 +64,8 @@ class Transport {
   virtual bool write_request(const std::string& requester, std::uint64_t nonce) = 0;
   /// Servers matched: writers of poses or of the global map seen by our readers.
   virtual int matched_servers() const = 0;
+  /// Readers matched by our request writer (a request written before any is matched is lost).
+  virtual int matched_request_readers() const = 0;
   /// Waits until the map writer's samples are acknowledged, at most `timeout`.
   virtual bool wait_for_acks(std::chrono::milliseconds timeout) = 0;
 };
