@@ -32,6 +32,13 @@ std::pair<std::string, std::string> ordered(const std::string& a, const std::str
 constexpr double kOverlapReuseDeg = 5.0;  ///< an overlap estimate holds while the pair's relative pose moves less [deg]
 constexpr double kOverlapReuseM = 0.5;    ///< ... and less than this [m]
 
+/// What a pair try is remembered by, per robot: its map's bytes and its session (a new session
+/// may bring a new map frame, so tries of the old one say nothing; its alignments are dropped too).
+std::uint64_t try_identity(const RobotRecord& r) {
+  return static_cast<std::uint64_t>(r.content_hash) ^
+         (static_cast<std::uint64_t>(std::hash<std::string>{}(r.session_id)) * 0x9E3779B97F4A7C15ULL);
+}
+
 std::size_t content_hash(const MapSample& m) {
   return std::hash<std::string_view>{}(
       std::string_view(reinterpret_cast<const char*>(m.data.data()), m.data.size()));
@@ -316,14 +323,14 @@ bool Pipeline::attempted(const RobotRecord& a, const RobotRecord& b, const std::
   if (it == attempts_.end()) return false;
   const RobotRecord& first = a.robot_id < b.robot_id ? a : b;
   const RobotRecord& second = a.robot_id < b.robot_id ? b : a;
-  return it->second.hash_a == first.content_hash && it->second.hash_b == second.content_hash;
+  return it->second.hash_a == try_identity(first) && it->second.hash_b == try_identity(second);
 }
 
 void Pipeline::record_attempt(const RobotRecord& a, const RobotRecord& b, const std::string& kind, bool accepted,
                               const std::string& reason) {
   const RobotRecord& first = a.robot_id < b.robot_id ? a : b;
   const RobotRecord& second = a.robot_id < b.robot_id ? b : a;
-  const PairAttempt attempt{first.robot_id, second.robot_id, kind, first.content_hash, second.content_hash,
+  const PairAttempt attempt{first.robot_id, second.robot_id, kind, try_identity(first), try_identity(second),
                             accepted, reason, unix_now()};
   {
     std::lock_guard<std::mutex> lock(pairs_mutex_);

@@ -36,7 +36,7 @@ struct EdgeVerdict {
 };
 
 /// One try at aligning a pair: not repeated while both maps are the same. robot_a < robot_b;
-/// the hashes are those of the maps' payload bytes at the try.
+/// the hashes identify each map at the try (its payload bytes and its session).
 struct PairAttempt {
   std::string robot_a;
   std::string robot_b;
