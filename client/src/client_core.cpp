@@ -100,8 +100,9 @@ PublishResult ClientCore::publish(const octomap::OcTree& tree) {
     // Numbered when queued, so concurrent publishers never queue a lower number after a higher one.
     std::lock_guard<std::mutex> lock(send_mutex_);
     message.sequence_number = result.sequence_number = next_sequence_++;
-    replaced = outbox_.has_value();
+    replaced = outbox_.has_value() && !outbox_resend_;
     outbox_ = std::move(message);
+    outbox_resend_ = false;
   }
   send_cv_.notify_all();
   if (replaced) {
@@ -119,16 +120,19 @@ void ClientCore::send_loop() {
     if (stop_) break;
     MapMessage message = std::move(*outbox_);
     outbox_.reset();
+    const bool resend = std::exchange(outbox_resend_, false);
     sending_ = true;
     lock.unlock();
     const bool ok = transport_->write_map(message);
-    {
+    if (!resend) {
       std::lock_guard<std::mutex> state_lock(state_mutex_);
       ++(ok ? stats_.updates_published : stats_.write_failures);
     }
     lock.lock();
     sending_ = false;
-    if (!ok && !outbox_) {
+    if (ok && !resend) {
+      written_ = std::move(message);
+    } else if (!ok && !resend && !outbox_) {  // a failed resend is not retried: best effort
       // Not written (e.g. the writer's history stayed full for max_block): retry it unless a
       // newer update replaced it meanwhile. Failures are reported by the dispatch thread.
       outbox_ = std::move(message);
@@ -262,12 +266,26 @@ void ClientCore::check_connection() {
     // late joiners is not guaranteed by every vendor), once our request writer has matched its
     // reader: requests are volatile, so one written before that match would be lost.
     ask_on_connect_ = connected;
+    if (connected) resend_last_map();
     invoke(active_.connection, connected);
   }
   if (ask_on_connect_ && transport_->matched_request_readers() > 0) {
     ask_on_connect_ = false;
     if (!transport_->write_request(requester_, ++nonce_)) warn("map request could not be written");
   }
+}
+
+void ClientCore::resend_last_map() {
+  // Transient-local delivery of the last map to a late-joining (or restarted) server is not
+  // guaranteed by every vendor: the same update (same sequence) goes out once more; a server
+  // that has it already ignores it as a duplicate.
+  {
+    std::lock_guard<std::mutex> lock(send_mutex_);
+    if (outbox_ || sending_ || !written_) return;  // a newer update is on its way anyway
+    outbox_ = *written_;
+    outbox_resend_ = true;
+  }
+  send_cv_.notify_all();
 }
 
 void ClientCore::deliver_poses(std::deque<Pose>& poses) {

@@ -64,6 +64,7 @@ class ClientCore {
   void send_loop();
   void warn(const std::string& message);           // dispatch thread
   void check_connection();                         // dispatch thread
+  void resend_last_map();                          // dispatch thread: the last written map again
 
   Options options_;
   Vendor vendor_;
@@ -104,6 +105,8 @@ class ClientCore {
   std::mutex send_mutex_;
   std::condition_variable send_cv_;
   std::optional<MapMessage> outbox_;  // latest wins
+  std::optional<MapMessage> written_;  // the last map written: sent again to a server that (re)appears
+  bool outbox_resend_ = false;         // the outbox holds written_ again (not counted in the statistics)
   bool sending_ = false;
   std::uint64_t next_sequence_ = 1;
 
