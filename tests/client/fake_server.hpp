@@ -11,6 +11,7 @@
 #include <vector>
 
 #include <fastdds/dds/subscriber/SampleInfo.hpp>
+#include <gtest/gtest.h>
 
 #include "mapmerge/wire/fastdds.hpp"
 #include "mapmerge/wire/topics.hpp"
@@ -38,20 +39,32 @@ class FakeServer {
   /// Starts reading a robot's map topic.
   void listen_to(const std::string& robot) {
     auto& p = *participant_;
-    map_readers_.emplace_back(robot, p.create_reader(p.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic(robot)),
-                                                     wire::TopicKind::State));
+    map_readers_.push_back(MapListener{
+        robot, p.create_reader(p.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic(robot)), wire::TopicKind::State)});
   }
 
-  /// The next map update of `robot`, waiting up to `timeout`.
+  /// The next new map update of `robot`, waiting up to `timeout`. A client may send its last
+  /// update once more (same session and sequence, e.g. when it notices a server appear); like
+  /// the real server, a repeat of the update taken last is skipped, and must be byte-identical.
   std::optional<mapmerge::MapUpdate> take_map(const std::string& robot, std::chrono::milliseconds timeout) {
-    for (auto& [id, reader] : map_readers_) {
-      if (id != robot) continue;
+    for (auto& listener : map_readers_) {
+      if (listener.robot != robot) continue;
       const auto deadline = std::chrono::steady_clock::now() + timeout;
       while (std::chrono::steady_clock::now() < deadline) {
         mapmerge::MapUpdate sample;
         eprosima::fastdds::dds::SampleInfo info;
-        if (reader->take_next_sample(&sample, &info) == ReturnCode_t::RETCODE_OK && info.valid_data) return sample;
-        reader->wait_for_unread_message(eprosima::fastrtps::Duration_t(0, 50000000));
+        if (listener.reader->take_next_sample(&sample, &info) == ReturnCode_t::RETCODE_OK && info.valid_data) {
+          if (listener.last && sample.session_id() == listener.last->session_id() &&
+              sample.sequence_number() == listener.last->sequence_number()) {
+            if (sample.data() != listener.last->data()) {
+              ADD_FAILURE() << robot << ": update " << sample.sequence_number() << " repeated with other bytes";
+            }
+            continue;
+          }
+          listener.last = sample;
+          return sample;
+        }
+        listener.reader->wait_for_unread_message(eprosima::fastrtps::Duration_t(0, 50000000));
       }
     }
     return std::nullopt;
@@ -112,7 +125,12 @@ class FakeServer {
   eprosima::fastdds::dds::DataWriter* pose_writer_ = nullptr;
   eprosima::fastdds::dds::DataWriter* map_writer_ = nullptr;
   eprosima::fastdds::dds::DataReader* request_reader_ = nullptr;
-  std::vector<std::pair<std::string, eprosima::fastdds::dds::DataReader*>> map_readers_;
+  struct MapListener {
+    std::string robot;
+    eprosima::fastdds::dds::DataReader* reader = nullptr;
+    std::optional<mapmerge::MapUpdate> last;  ///< the update take_map() returned last
+  };
+  std::vector<MapListener> map_readers_;
 };
 
 }  // namespace mapmerge::test
