@@ -140,6 +140,7 @@ mapmerge::ServerStatus to_native(const StatusOut& s) {
     rs.resolution(r.resolution);
     rs.updates_accepted(r.accepted);
     rs.updates_rejected(r.rejected);
+    rs.updates_ignored(r.ignored);
     rs.last_error(r.last_error);
     rs.alive(r.alive);
     rs.times_lost(r.times_lost);
@@ -159,6 +160,7 @@ mapmerge::ServerStatus to_native(const StatusOut& s) {
   }
   m.updates_received(s.updates_received);
   m.updates_rejected(s.updates_rejected);
+  m.updates_ignored(s.updates_ignored);
   m.merges_run(s.merges_run);
   m.merges_coalesced(s.merges_coalesced);
   m.store_ok(s.store_ok);

@@ -1,5 +1,6 @@
 #include "mapmerge/server/registry.hpp"
 
+#include <algorithm>
 #include <cstdio>
 #include <set>
 #include <stdexcept>
@@ -67,26 +68,79 @@ const char* to_string(Admission a) {
     case Admission::kNewSession: return "new_session";
     case Admission::kDuplicate: return "duplicate";
     case Admission::kOutOfOrder: return "out_of_order";
+    case Admission::kConflict: return "conflict";
   }
   return "?";
 }
 
-Admission Registry::admit(const std::string& robot, const std::string& session, std::uint64_t sequence) {
+namespace {
+
+/// RFC 1982 serial number order over 64 bits: `b` is after `a` when it is less than 2^63 ahead.
+bool serial_after(std::uint64_t b, std::uint64_t a) { return b != a && b - a < (std::uint64_t{1} << 63); }
+
+constexpr std::size_t kReplacedKept = 8;  ///< replaced sessions remembered per robot
+
+}  // namespace
+
+Admission Registry::admit(const std::string& robot, const std::string& session, std::uint64_t sequence,
+                          Clock::time_point now) {
   std::lock_guard<std::mutex> lock(mutex_);
   auto it = seen_.find(robot);
   if (it == seen_.end()) {
-    seen_[robot] = Seen{session, sequence};
+    Seen& s = seen_[robot];
+    s.session = session;
+    s.sequence = sequence;
+    s.last = now;
     return Admission::kNew;
   }
   Seen& s = it->second;
   if (s.session != session) {
-    s = Seen{session, sequence};
+    const auto replaced = std::find(s.replaced.begin(), s.replaced.end(), session);
+    const bool in_force = now - s.last < std::chrono::duration<double>(conflict_hold_s_);
+    if (replaced != s.replaced.end() && in_force) return Admission::kConflict;
+    if (replaced != s.replaced.end()) s.replaced.erase(replaced);
+    s.replaced.push_back(s.session);
+    if (s.replaced.size() > kReplacedKept) s.replaced.erase(s.replaced.begin());
+    s.warned.erase(session);
+    s.session = session;
+    s.sequence = sequence;
+    s.last = now;
     return Admission::kNewSession;
   }
-  if (sequence == s.sequence) return Admission::kDuplicate;
-  if (sequence < s.sequence) return Admission::kOutOfOrder;
+  if (sequence == s.sequence) {
+    ++s.ignored;
+    return Admission::kDuplicate;
+  }
+  if (!serial_after(sequence, s.sequence)) {
+    ++s.ignored;
+    return Admission::kOutOfOrder;
+  }
   s.sequence = sequence;
+  s.last = now;
   return Admission::kNew;
+}
+
+void Registry::set_conflict_hold(double seconds) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  conflict_hold_s_ = seconds;
+}
+
+std::uint64_t Registry::ignored(const std::string& robot) const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  const auto it = seen_.find(robot);
+  return it == seen_.end() ? 0 : it->second.ignored;
+}
+
+std::string Registry::session_of(const std::string& robot) const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  const auto it = seen_.find(robot);
+  return it == seen_.end() ? std::string() : it->second.session;
+}
+
+bool Registry::first_conflict(const std::string& robot, const std::string& session) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  auto it = seen_.find(robot);
+  return it != seen_.end() && it->second.warned.insert(session).second;
 }
 
 std::uint64_t Registry::next_sequence(const std::string& robot, const std::string& session) const {

@@ -16,6 +16,7 @@ std::chrono::duration<double> seconds(double s) { return std::chrono::duration<d
 Server::Server(ServerConfig config) : config_(std::move(config)) {
   if (!config_.store.state_dir.empty()) store_ = std::make_unique<Store>(config_.store);
   if (!config_.merge.reference.empty()) registry_.claim_reference(config_.merge.reference);
+  registry_.set_conflict_hold(config_.merge.session_conflict_hold_s);
   Pipeline::Hooks hooks;
   hooks.retry = [this](const std::string& robot) { scheduler_->retry(robot); };
   hooks.changed = [this] {
@@ -121,14 +122,29 @@ void Server::on_map(MapSample sample) {
   // ROS 2 maps carry no sequence number: each is the next after what the registry holds, also
   // after a restart restored a higher number than this reader counted.
   if (sample.ros) sample.sequence = registry_.next_sequence(sample.topic_robot, sample.session_id);
-  const Admission a = registry_.admit(sample.topic_robot, sample.session_id, sample.sequence);
+  const std::string& robot = sample.topic_robot;
+  const Admission a = registry_.admit(robot, sample.session_id, sample.sequence);
   if (a == Admission::kDuplicate || a == Admission::kOutOfOrder) {
     ++ignored_;
-    spdlog::debug("robot {}: update {}/{} ignored ({})", sample.topic_robot, sample.session_id, sample.sequence,
-                  to_string(a));
+    if (a == Admission::kDuplicate) {
+      spdlog::debug("robot {}: update {}/{} ignored (held already)", robot, sample.session_id, sample.sequence);
+    } else {
+      spdlog::info("robot {}: update {}/{} ignored: older than the update held", robot, sample.session_id,
+                   sample.sequence);
+    }
     return;
   }
-  if (a == Admission::kNewSession) spdlog::info("robot {}: new session {}", sample.topic_robot, sample.session_id);
+  if (a == Admission::kConflict) {
+    ++conflicting_;
+    const std::string in_force = registry_.session_of(robot);
+    const std::string reason = "robot id " + robot + " is used by two participants: session " + sample.session_id +
+                               " was replaced by session " + in_force + ", which still publishes; updates of " +
+                               sample.session_id + " are ignored (give each robot its own id)";
+    registry_.reject(robot, reason);
+    if (registry_.first_conflict(robot, sample.session_id)) spdlog::warn("robot {}: {}", robot, reason);
+    return;
+  }
+  if (a == Admission::kNewSession) spdlog::info("robot {}: new session {}", robot, sample.session_id);
   scheduler_->submit(std::move(sample));
 }
 
@@ -220,7 +236,8 @@ void Server::publish_status() {
                          : st == RobotStatus::kRejected ? PoseState::kRejected : PoseState::kUnknown;
     const Registry::Presence presence = registry_.presence(rec->robot_id);
     s.robots.push_back({rec->robot_id, ps, rec->session_id, rec->sequence, rec->resolution, rec->updates_accepted,
-                        rec->updates_rejected, rec->last_error, presence.alive, presence.times_lost});
+                        rec->updates_rejected, registry_.ignored(rec->robot_id), rec->last_error, presence.alive,
+                        presence.times_lost});
   }
   if (store_) {
     const StoreHealth h = store_->health();
@@ -243,7 +260,8 @@ void Server::publish_status() {
   const auto c = pipeline_->counters();
   const auto sched = scheduler_->stats();
   s.updates_received = received_;
-  s.updates_rejected = c.updates_rejected;
+  s.updates_rejected = c.updates_rejected + conflicting_;
+  s.updates_ignored = ignored_;
   s.merges_run = c.merges_run;
   s.merges_coalesced = sched.coalesced;
   s.merges_queued = sched.queued;

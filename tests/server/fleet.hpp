@@ -87,11 +87,13 @@ struct ReceivedMerge {
 
 /// The last server status seen.
 struct ReceivedStatus {
-  std::uint64_t updates_received = 0, updates_rejected = 0, merges_run = 0, merges_coalesced = 0;
+  std::uint64_t updates_received = 0, updates_rejected = 0, updates_ignored = 0, merges_run = 0, merges_coalesced = 0;
   std::uint64_t global_version = 0;
   std::map<std::string, std::uint64_t> accepted;  ///< per robot: updates accepted
   std::map<std::string, std::uint64_t> sequence;  ///< per robot: sequence number of the map held
   std::map<std::string, std::uint64_t> rejected;  ///< per robot: updates rejected
+  std::map<std::string, std::uint64_t> ignored;   ///< per robot: duplicate and out-of-order updates
+  std::map<std::string, double> resolution;       ///< per robot: resolution of the map held [m]
   std::map<std::string, std::string> last_error;
   std::map<std::string, std::string> session;     ///< per robot: session of the map held
   std::map<std::string, bool> alive;              ///< per robot: a map writer is matched

@@ -44,6 +44,7 @@ struct FleetListener::Impl {
     }
     status.updates_received = s.updates_received();
     status.updates_rejected = s.updates_rejected();
+    status.updates_ignored = s.updates_ignored();
     status.merges_run = s.merges_run();
     status.merges_coalesced = s.merges_coalesced();
     status.global_version = s.global_version();
@@ -51,6 +52,8 @@ struct FleetListener::Impl {
       status.accepted[r.robot_id()] = r.updates_accepted();
       status.sequence[r.robot_id()] = r.sequence_number();
       status.rejected[r.robot_id()] = r.updates_rejected();
+      status.ignored[r.robot_id()] = r.updates_ignored();
+      status.resolution[r.robot_id()] = r.resolution();
       status.last_error[r.robot_id()] = r.last_error();
       status.session[r.robot_id()] = r.session_id();
       status.alive[r.robot_id()] = r.alive();

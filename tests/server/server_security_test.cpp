@@ -16,21 +16,28 @@ void make_keystore(const std::string& dir) {
   ASSERT_EQ(std::system(cmd.c_str()), 0) << cmd;
 }
 
-TEST_F(ServerFleet, SecuredServerMergesAuthenticatedRobots) {
+TEST_F(ServerFleet, SecuredServerMergesAuthenticatedRobotsOfBothVendors) {
   const std::string keystore = dir + "/keys";
   ASSERT_NO_FATAL_FAILURE(make_keystore(keystore));
   auto server = start_server({"--keystore", keystore});
   FleetListener op(domain, {}, wire::SecurityOptions{keystore, "viewer1"});
-  std::vector<std::unique_ptr<RobotPublisher>> pubs;
-  for (std::size_t i = 0; i < 2; ++i) {
-    const std::string& id = fleet().robots[i].id;
-    pubs.push_back(std::make_unique<RobotPublisher>(domain, id, wire::ProfileSpec{}, wire::SecurityOptions{keystore, id}));
-    pubs.back()->publish(*fleet().robots[i].tree);
-  }
-  ASSERT_TRUE(op.wait_for([&] { return global_has(op, 2) && aligned(op, {"r1", "r2"}); }, kMergeTimeout))
-      << server->log();
+  // r1: a Fast DDS participant in this process; r2: mapmerge-robot on Cyclone DDS, in a process of
+  // its own (Cyclone 0.10 takes one identity per process).
+  const std::string r1 = fleet().robots[0].id, r2 = fleet().robots[1].id;
+  RobotPublisher fastdds_robot(domain, r1, wire::ProfileSpec{}, wire::SecurityOptions{keystore, r1});
+  fastdds_robot.publish(*fleet().robots[0].tree);
+  const std::string r2_map = dir + "/" + r2 + ".bt";
+  ASSERT_TRUE(fleet().robots[1].tree->writeBinaryConst(r2_map));
+  ChildProcess cyclone_robot(std::string(MAPMERGE_BINARY_DIR) + "/bin/mapmerge-robot",
+                             {"--id", r2, "--map", r2_map, "--domain", std::to_string(domain), "--vendor", "cyclone",
+                              "--keystore", keystore, "--repeat", "0", "--rate", "1"},
+                             Logs::combined(dir + "/" + r2 + ".log"));
+  ASSERT_TRUE(op.wait_for([&] { return global_has(op, 2) && aligned(op, {r1, r2}); }, kMergeTimeout))
+      << server->log() << cyclone_robot.log();
+  EXPECT_LT(translation_error_m(fleet().truth(1), op.poses().at(r2).T_global_robot), kMaxTranslationM);
   EXPECT_NE(server->log().find("DDS security: keystore " + keystore), std::string::npos) << server->log();
   EXPECT_EQ(server->kill(SIGTERM), 0);
+  cyclone_robot.kill(SIGTERM);
 }
 
 TEST_F(ServerFleet, KeystoreWithoutTheServersEnclaveIsAConfigurationError) {

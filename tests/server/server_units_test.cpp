@@ -5,6 +5,7 @@
 #include <condition_variable>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <mutex>
 
 #include <gtest/gtest.h>
@@ -38,6 +39,43 @@ TEST(Registry, IgnoresDuplicatesAndOutOfOrderAndRestartsWithASession) {
   EXPECT_EQ(r.admit("r1", "b", 1), Admission::kNewSession);  // rebooted: numbering restarts
   EXPECT_EQ(r.admit("r1", "b", 2), Admission::kNew);
   EXPECT_EQ(r.admit("r2", "a", 1), Admission::kNew);         // robots are independent
+}
+
+TEST(Registry, SequenceNumbersCompareAsSerialNumbersAndWrap) {
+  Registry r;
+  constexpr std::uint64_t kMax = std::numeric_limits<std::uint64_t>::max();
+  EXPECT_EQ(r.admit("r1", "a", kMax - 1), Admission::kNew);
+  EXPECT_EQ(r.admit("r1", "a", kMax), Admission::kNew);
+  EXPECT_EQ(r.admit("r1", "a", 0), Admission::kNew);  // wrapped: 0 follows 2^64 - 1
+  EXPECT_EQ(r.admit("r1", "a", 1), Admission::kNew);
+  EXPECT_EQ(r.admit("r1", "a", kMax), Admission::kOutOfOrder);  // from before the wrap
+  EXPECT_EQ(r.admit("r1", "a", 1), Admission::kDuplicate);
+  EXPECT_EQ(r.next_sequence("r1", "a"), 2u);
+  EXPECT_EQ(r.admit("r1", "a", 1 + (std::uint64_t{1} << 62)), Admission::kNew);  // a gap, still ahead
+  EXPECT_EQ(r.ignored("r1"), 2u);
+  EXPECT_EQ(r.ignored("r2"), 0u);
+}
+
+TEST(Registry, TwoParticipantsUsingOneRobotIdDoNotTakeTurns) {
+  Registry r;
+  r.set_conflict_hold(30.0);
+  const auto t0 = Registry::Clock::now();
+  EXPECT_EQ(r.admit("r1", "a", 1, t0), Admission::kNew);
+  EXPECT_EQ(r.admit("r1", "b", 1, t0 + 1s), Admission::kNewSession);  // as far as anyone can tell, a restart
+  EXPECT_EQ(r.admit("r1", "a", 2, t0 + 2s), Admission::kConflict);    // but a still publishes
+  EXPECT_TRUE(r.first_conflict("r1", "a"));
+  EXPECT_FALSE(r.first_conflict("r1", "a"));                           // reported once
+  EXPECT_EQ(r.admit("r1", "b", 2, t0 + 3s), Admission::kNew);         // b keeps the id
+  EXPECT_EQ(r.admit("r1", "a", 3, t0 + 20s), Admission::kConflict);
+  EXPECT_EQ(r.session_of("r1"), "b");
+  EXPECT_EQ(r.admit("r2", "a", 1, t0 + 20s), Admission::kNew);        // other robots are not affected
+  // b has been silent for the hold (it left): a takes the id over, and b is the replaced one now.
+  EXPECT_EQ(r.admit("r1", "a", 4, t0 + 34s), Admission::kNewSession);
+  EXPECT_EQ(r.admit("r1", "b", 3, t0 + 35s), Admission::kConflict);
+  EXPECT_TRUE(r.first_conflict("r1", "b"));
+  // A genuinely new session (a restart) is taken at once.
+  EXPECT_EQ(r.admit("r1", "c", 1, t0 + 36s), Admission::kNewSession);
+  EXPECT_EQ(r.session_of("r1"), "c");
 }
 
 TEST(Registry, AnUnchangedMapOfTheSameSessionIsOnlyTouched) {

@@ -41,6 +41,9 @@ struct MergeConfig {
   int extra_max_jobs = 0;            ///< extra pairs aligned at once [count]; 0: threads - 1 (at least 1)
   bool keep_lost_maps = true;        ///< a robot whose writers are gone (left, or lease expired) stays
                                      ///< fused in the global map (false: left out until it returns)
+  double session_conflict_hold_s = 30.0;  ///< a session of a robot that a newer session replaced is refused
+                                          ///< while the newer one published within this time: two
+                                          ///< participants use one robot id [s]
 };
 
 /// When the global map and poses go out (read by the server's main loop).

@@ -74,6 +74,7 @@ struct RobotStateOut {
   double resolution = 0.0;
   std::uint64_t accepted = 0;
   std::uint64_t rejected = 0;
+  std::uint64_t ignored = 0;     ///< duplicate and out-of-order updates
   std::string last_error;
   bool alive = false;            ///< a writer of its map topic is matched
   std::uint32_t times_lost = 0;  ///< how often it was lost since start
@@ -85,6 +86,7 @@ struct StatusOut {
   std::vector<MergeReportOut> recent_merges;
   std::uint64_t updates_received = 0;
   std::uint64_t updates_rejected = 0;
+  std::uint64_t updates_ignored = 0;  ///< duplicate and out-of-order updates
   std::uint64_t merges_run = 0;
   std::uint64_t merges_coalesced = 0;
   bool store_ok = true;              ///< the last store write succeeded (or no store)

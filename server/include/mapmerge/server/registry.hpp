@@ -2,6 +2,7 @@
 /// The registry: per robot, its latest accepted map, where it came from (session, sequence),
 /// its counters, and the accepted pairwise alignments between robots. Thread-safe.
 
+#include <chrono>
 #include <cstdint>
 #include <map>
 #include <memory>
@@ -40,13 +41,35 @@ struct RobotRecord {
 };
 
 /// Whether an update with (session, sequence) is new for its robot.
-enum class Admission { kNew, kNewSession, kDuplicate, kOutOfOrder };
+enum class Admission {
+  kNew,         ///< the next update of the robot's session
+  kNewSession,  ///< a new session (a restarted robot): numbering starts again
+  kDuplicate,   ///< the update held already (a republish, a client's resend)
+  kOutOfOrder,  ///< older than the update held
+  kConflict,    ///< a session that another session of the robot replaced, while that one still
+                ///< publishes: two participants use one robot id
+};
 const char* to_string(Admission a);
 
 class Registry {
  public:
-  /// Decides on (and remembers) an incoming update's key; called before any decoding.
-  Admission admit(const std::string& robot, const std::string& session, std::uint64_t sequence);
+  using Clock = std::chrono::steady_clock;
+  /// Decides on (and remembers) an incoming update's key; called before any decoding. Within a
+  /// session, sequence numbers compare as 64-bit serial numbers (RFC 1982): 0 follows 2^64 - 1.
+  /// A new session takes the robot over at once (a restarted robot), unless it is one that an
+  /// earlier takeover replaced and the session in force has published within the conflict hold:
+  /// then two participants publish as one robot, and the replaced session is refused (kConflict)
+  /// until the one in force has been silent for the hold.
+  Admission admit(const std::string& robot, const std::string& session, std::uint64_t sequence,
+                  Clock::time_point now = Clock::now());
+  /// How long the session in force keeps a robot id against a session it replaced [s].
+  void set_conflict_hold(double seconds);
+  /// Duplicate and out-of-order updates of `robot` ignored so far.
+  std::uint64_t ignored(const std::string& robot) const;
+  /// The session in force for `robot` (empty before its first update).
+  std::string session_of(const std::string& robot) const;
+  /// True the first time a conflicting `session` of `robot` is reported (once per takeover).
+  bool first_conflict(const std::string& robot, const std::string& session);
   /// The sequence number after the last one admitted for (robot, session); 1 for a new session.
   std::uint64_t next_sequence(const std::string& robot, const std::string& session) const;
 
@@ -97,8 +120,12 @@ class Registry {
 
  private:
   struct Seen {
-    std::string session;
-    std::uint64_t sequence = 0;
+    std::string session;               ///< the session in force
+    std::uint64_t sequence = 0;        ///< its last admitted sequence
+    Clock::time_point last{};          ///< when it last published a new update
+    std::vector<std::string> replaced; ///< sessions it (or an earlier one) took the robot over from
+    std::set<std::string> warned;      ///< replaced sessions reported as conflicting already
+    std::uint64_t ignored = 0;         ///< duplicates and out-of-order updates
   };
   RobotRecord& mutable_record(const std::string& robot);
   std::map<std::string, GlobalPose> poses_locked() const;
@@ -107,6 +134,7 @@ class Registry {
 
   mutable std::mutex mutex_;
   std::map<std::string, Seen> seen_;
+  double conflict_hold_s_ = 30.0;
   std::map<std::string, Presence> presence_;
   std::map<std::string, std::shared_ptr<RobotRecord>> records_;
   std::map<std::pair<std::string, std::string>, Edge> edges_;

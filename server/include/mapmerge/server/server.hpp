@@ -64,7 +64,8 @@ class Server {
   std::atomic<bool> dirty_{false};
   std::atomic<bool> requested_{false};
   std::atomic<std::uint64_t> received_{0};
-  std::atomic<std::uint64_t> ignored_{0};
+  std::atomic<std::uint64_t> ignored_{0};      ///< duplicate and out-of-order updates
+  std::atomic<std::uint64_t> conflicting_{0};  ///< updates of a session that another one replaced
   std::uint64_t version_ = 0;
   std::optional<GlobalMapOut> last_global_;
   Clock::time_point last_build_{}, last_republish_{}, last_status_{}, last_store_retry_{};
