@@ -202,9 +202,11 @@ void Store::transaction(const std::function<void()>& body) {
 
 bool Store::attempt(const std::string& what, const std::function<void()>& write) {
   try {
+    spdlog::debug("state store: writing {}", what);
     ensure_writable();
     write();
     settle();
+    spdlog::debug("state store: wrote {}", what);
     return true;
   } catch (const StoreError& e) {
     ++health_.failures;

@@ -29,6 +29,7 @@
 #include "mapmerge/wire/topics.hpp"
 #include "mapmerge_cyclone/mapmerge.h"
 #include "mapmerge_fastdds/mapmergePubSubTypes.h"
+#include "mapmerge_fastdds/ros2_msgsPubSubTypes.h"
 #include "secure_test_env.hpp"
 
 namespace mapmerge::test {
@@ -230,6 +231,21 @@ TEST_F(Security, RobotCannotWriteAnotherRobotsTopicOrTheServersFastdds) {
                                    TopicKind::State),
                wire::DdsError)
       << "r1 wrote the global map";
+  EXPECT_THROW(robot.create_writer(robot.topic<mapmerge::RobotPosePubSubType>(wire::kPosesTopic), TopicKind::State),
+               wire::DdsError)
+      << "r1 wrote poses";
+  EXPECT_THROW(robot.create_writer(robot.topic<mapmerge::ServerStatusPubSubType>(wire::kStatusTopic),
+                                   TopicKind::State),
+               wire::DdsError)
+      << "r1 wrote the server's status";
+  EXPECT_THROW(robot.create_writer(robot.topic<tf2_msgs::msg::dds_::TFMessage_PubSubType>(wire::kTfTopic),
+                                   TopicKind::Event),
+               wire::DdsError)
+      << "r1 wrote tf";
+  EXPECT_THROW(robot.create_writer(robot.topic<octomap_msgs::msg::dds_::Octomap_PubSubType>(wire::kRosGlobalMapTopic),
+                                   TopicKind::State),
+               wire::DdsError)
+      << "r1 wrote the ROS 2 global map";
   EXPECT_THROW(robot.create_reader(robot.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic("r2")),
                                    TopicKind::State),
                wire::DdsError)

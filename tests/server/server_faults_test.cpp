@@ -126,17 +126,27 @@ class ServerFaults : public ServerFleet {
         server_args({"--config", config_path(), "--reference", "r1", "--log-level", "debug"}),
         dir + "/server" + std::to_string(run) + ".log");
   }
-  /// Waits until run `run` has logged `marker` `count` times.
-  bool wait_for_log(int run, const std::string& marker, std::size_t count, std::chrono::seconds timeout) const {
+  /// How often run `run` has logged `marker`.
+  std::size_t log_count(int run, const std::string& marker) const {
+    const std::string log = run_log(run);
+    std::size_t n = 0;
+    for (auto pos = log.find(marker); pos != std::string::npos; pos = log.find(marker, pos + 1)) ++n;
+    return n;
+  }
+  /// Waits until run `run` has logged `marker` `count` times, looking every `poll`.
+  bool wait_for_log(int run, const std::string& marker, std::size_t count, std::chrono::seconds timeout,
+                    std::chrono::milliseconds poll = 10ms) const {
     const auto deadline = std::chrono::steady_clock::now() + timeout;
     while (std::chrono::steady_clock::now() < deadline) {
-      const std::string log = run_log(run);
-      std::size_t n = 0;
-      for (auto pos = log.find(marker); pos != std::string::npos; pos = log.find(marker, pos + 1)) ++n;
-      if (n >= count) return true;
-      std::this_thread::sleep_for(10ms);
+      if (log_count(run, marker) >= count) return true;
+      std::this_thread::sleep_for(poll);
     }
     return false;
+  }
+  /// Whether the last `begin` in `log` has no `end` after it (the process died in between).
+  static bool inside(const std::string& log, const std::string& begin, const std::string& end) {
+    const auto started = log.rfind(begin), finished = log.rfind(end);
+    return started != std::string::npos && (finished == std::string::npos || started > finished);
   }
   std::string run_log(int run) const { return read_file(dir + "/server" + std::to_string(run) + ".log"); }
 
@@ -170,19 +180,22 @@ TEST_F(ServerFaults, TwentyKillsDuringMergesAndWritesLoseNothingAcknowledged) {
   ASSERT_TRUE(op.wait_for([&] { return aligned(op, {"r1", "r2", "r3"}) && global_has(op, 3); }, kMergeTimeout))
       << run_log(run);
 
-  // Every other kill right after a refinement (a merge) started; the others at a random moment,
-  // when the server restores, decodes, merges, fuses or writes (robots publish every 300 ms).
+  // Every other kill right after a refinement (a merge) started; every fourth as soon as a write
+  // to the state store began (debug log); the others at a random moment, when the server
+  // restores, decodes, merges, fuses or writes (robots publish every 300 ms).
   std::mt19937 rng(7);
   std::uniform_int_distribution<int> delay_ms(100, 3000), jitter_ms(0, 200);
   constexpr int kKills = 20;
-  int kills_during_merge = 0;
+  constexpr const char* kWriteBegins = "state store: writing";
+  int kills_during_merge = 0, kills_during_write = 0;
   for (int k = 0; k < kKills; ++k) {
     const bool at_merge = k % 2 == 0 && wait_for_log(run, "refinement started", 1, 60s);
-    std::this_thread::sleep_for(std::chrono::milliseconds(at_merge ? jitter_ms(rng) : delay_ms(rng)));
+    const bool at_write = k % 4 == 1 && wait_for_log(run, kWriteBegins, log_count(run, kWriteBegins) + 1, 60s, 1ms);
+    if (!at_write) std::this_thread::sleep_for(std::chrono::milliseconds(at_merge ? jitter_ms(rng) : delay_ms(rng)));
     ASSERT_EQ(server->kill(SIGKILL), 128 + SIGKILL);
     const std::string killed_log = run_log(run);
-    const auto started = killed_log.rfind("refinement started"), finished = killed_log.rfind("(refine):");
-    kills_during_merge += started != std::string::npos && (finished == std::string::npos || started > finished);
+    kills_during_merge += inside(killed_log, "refinement started", "(refine):");
+    kills_during_write += inside(killed_log, kWriteBegins, "state store: wrote");
     std::this_thread::sleep_for(100ms);  // samples already on the wire arrive
     const Acknowledged acked = op.acknowledged();
     clean_shm();
@@ -191,7 +204,9 @@ TEST_F(ServerFaults, TwentyKillsDuringMergesAndWritesLoseNothingAcknowledged) {
     if (HasFatalFailure()) return;
   }
   RecordProperty("kills_during_a_merge", kills_during_merge);
+  RecordProperty("kills_during_a_store_write", kills_during_write);
   EXPECT_GT(kills_during_merge, 0) << "no kill hit a running merge";
+  EXPECT_GT(kills_during_write, 0) << "no kill hit a write to the state store";
 
   // The robots never stopped: without anyone's help the fleet converges on their last maps.
   robots.freeze();
