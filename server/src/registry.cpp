@@ -107,6 +107,7 @@ Admission Registry::admit(const std::string& robot, const std::string& session, 
     s.last = now;
     return Admission::kNewSession;
   }
+  s.last = now;  // the session in force still publishes, also when it repeats itself
   if (sequence == s.sequence) {
     ++s.ignored;
     return Admission::kDuplicate;
@@ -116,7 +117,6 @@ Admission Registry::admit(const std::string& robot, const std::string& session, 
     return Admission::kOutOfOrder;
   }
   s.sequence = sequence;
-  s.last = now;
   return Admission::kNew;
 }
 

@@ -68,13 +68,15 @@ TEST(Registry, TwoParticipantsUsingOneRobotIdDoNotTakeTurns) {
   EXPECT_EQ(r.admit("r1", "b", 2, t0 + 3s), Admission::kNew);         // b keeps the id
   EXPECT_EQ(r.admit("r1", "a", 3, t0 + 20s), Admission::kConflict);
   EXPECT_EQ(r.session_of("r1"), "b");
+  EXPECT_EQ(r.admit("r1", "b", 2, t0 + 25s), Admission::kDuplicate);   // b republishes: still in force
+  EXPECT_EQ(r.admit("r1", "a", 4, t0 + 50s), Admission::kConflict);
   EXPECT_EQ(r.admit("r2", "a", 1, t0 + 20s), Admission::kNew);        // other robots are not affected
   // b has been silent for the hold (it left): a takes the id over, and b is the replaced one now.
-  EXPECT_EQ(r.admit("r1", "a", 4, t0 + 34s), Admission::kNewSession);
-  EXPECT_EQ(r.admit("r1", "b", 3, t0 + 35s), Admission::kConflict);
+  EXPECT_EQ(r.admit("r1", "a", 5, t0 + 56s), Admission::kNewSession);
+  EXPECT_EQ(r.admit("r1", "b", 3, t0 + 57s), Admission::kConflict);
   EXPECT_TRUE(r.first_conflict("r1", "b"));
   // A genuinely new session (a restart) is taken at once.
-  EXPECT_EQ(r.admit("r1", "c", 1, t0 + 36s), Admission::kNewSession);
+  EXPECT_EQ(r.admit("r1", "c", 1, t0 + 58s), Admission::kNewSession);
   EXPECT_EQ(r.session_of("r1"), "c");
 }
 

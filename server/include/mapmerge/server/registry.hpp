@@ -122,7 +122,7 @@ class Registry {
   struct Seen {
     std::string session;               ///< the session in force
     std::uint64_t sequence = 0;        ///< its last admitted sequence
-    Clock::time_point last{};          ///< when it last published a new update
+    Clock::time_point last{};          ///< when it last published (new, repeated or older update)
     std::vector<std::string> replaced; ///< sessions it (or an earlier one) took the robot over from
     std::set<std::string> warned;      ///< replaced sessions reported as conflicting already
     std::uint64_t ignored = 0;         ///< duplicates and out-of-order updates
