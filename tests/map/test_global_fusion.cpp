@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <random>
+#include <set>
 
 #include <Eigen/Geometry>
 
@@ -110,6 +111,68 @@ TEST_F(GlobalFusionTest, UpdatesPoseChangesAndRemovalsEqualAFusionFromScratch) {
   EXPECT_TRUE(g.empty());
   EXPECT_EQ(g.tree()->size(), 0U);
   EXPECT_EQ(g.encode().nodes, 0U);
+}
+
+/// An occupied cube of 64^3 voxels at `corner` (aligned to 64 voxels): one leaf once pruned, so
+/// fusing it adds blocks larger than the encoder's cached blocks.
+Tree aligned_cube(double res, const octomap::point3d& corner) {
+  auto t = std::make_shared<octomap::OcTree>(res);
+  const octomap::OcTreeKey k0 = t->coordToKey(corner);
+  for (unsigned x = 0; x < 64; ++x) {
+    for (unsigned y = 0; y < 64; ++y) {
+      for (unsigned z = 0; z < 64; ++z) {
+        t->setNodeValue(octomap::OcTreeKey(static_cast<octomap::key_type>((k0[0] & ~63U) + x),
+                                           static_cast<octomap::key_type>((k0[1] & ~63U) + y),
+                                           static_cast<octomap::key_type>((k0[2] & ~63U) + z)),
+                        2.0f, true);
+      }
+    }
+  }
+  t->prune();
+  return t;
+}
+
+TEST_F(GlobalFusionTest, EncodingAfterEveryChangeEqualsAFreshEncoding) {
+  // encode() copies the bytes of unchanged blocks from the previous encoding: after each step
+  // the bytes must be exactly those of a fresh fusion of the same maps.
+  const double res = world_->getResolution();
+  const Robot r2 = cut(*world_, "r2", -8, 6, 1.1);
+  const Robot r2_grown = cut(*world_, "r2", -8, 12, 1.1);
+  const Robot r2_shrunk = cut(*world_, "r2", -5, 9, 1.1);
+  const Robot r3 = cut(*world_, "r3", 2, 20, -2.3);
+  const Tree cube = aligned_cube(res, octomap::point3d(1.0f, 1.0f, 0.0f));
+  ASSERT_EQ(cube->getNumLeafNodes(), 1U);
+  Eigen::Matrix4d T3 = T_global(r3);
+  T3(0, 3) += 0.05;
+  using State = std::vector<std::pair<std::string, std::pair<Tree, Eigen::Matrix4d>>>;
+  const std::vector<State> steps{
+      {{"r2", {r2.map, T_global(r2)}}},
+      {{"r2", {r2.map, T_global(r2)}}, {"r3", {r3.map, T_global(r3)}}},
+      {{"r2", {r2_grown.map, T_global(r2)}}, {"r3", {r3.map, T_global(r3)}}},           // by difference
+      {{"r2", {r2_grown.map, T_global(r2)}}, {"r3", {r3.map, T3}}},                      // moved
+      {{"r2", {r2_grown.map, T_global(r2)}}, {"r3", {r3.map, T3}}, {"c", {cube, Eigen::Matrix4d::Identity()}}},
+      {{"r2", {r2_shrunk.map, T_global(r2)}}, {"c", {cube, Eigen::Matrix4d::Identity()}}},  // r3 out, r2 shrinks
+      {{"r2", {r2_shrunk.map, T_global(r2)}}},                                          // the big block out
+      {{"w", {Tree(new octomap::OcTree(*world_)), Eigen::Matrix4d::Identity()}}, {"r2", {r2_shrunk.map, T_global(r2)}}},
+  };
+  GlobalFusion g(res);
+  std::set<std::string> in;
+  for (std::size_t k = 0; k < steps.size(); ++k) {
+    std::set<std::string> now;
+    for (const auto& [id, m] : steps[k]) {
+      ASSERT_TRUE(g.set(id, m.first, m.second).ok) << "step " << k << " " << id;
+      now.insert(id);
+    }
+    for (const auto& id : in) {
+      if (now.count(id) == 0) g.remove(id);
+    }
+    in = now;
+    const auto encoded = g.encode();
+    const auto fresh = from_scratch(steps[k], res)->encode();
+    EXPECT_EQ(encoded.nodes, fresh.nodes) << "step " << k;
+    EXPECT_TRUE(encoded.bt == fresh.bt) << "step " << k << ": the encoded global maps differ";
+    EXPECT_TRUE(g.encode().bt == fresh.bt) << "step " << k << ": encoding twice changed the bytes";
+  }
 }
 
 TEST_F(GlobalFusionTest, EncodedMapIsTheMaximumLikelihoodOfTheClampedSums) {

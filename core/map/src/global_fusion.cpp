@@ -114,6 +114,7 @@ GlobalFusion::GlobalFusion(double resolution, const FuseConfig& config)
     throw MapError("GlobalFusion: resolution must be positive");
   }
   sums_ = std::make_unique<detail::SumTree>(resolution);
+  encoded_ = std::make_unique<detail::EncodedBlocks>();
 }
 
 GlobalFusion::~GlobalFusion() = default;

@@ -25,18 +25,25 @@ State leaf_state(std::int64_t packed) {
 /// node 2 bytes of 2-bit child codes (00 unknown, 01 free, 10 occupied, 11 inner), pre-order.
 /// A node's record is reserved before its children are written and dropped again when they all
 /// turn out to share one state (the node is then a leaf of its parent). Empty subtrees of the
-/// sums are deleted and equal blocks merged on the way.
+/// sums are deleted and equal blocks merged on the way. A subtree's bytes depend only on the
+/// states of its voxels, so a block (SumTree::kBlockDepth) whose sums did not change since the
+/// last run is copied from that run's bytes.
 class BodyWriter {
  public:
-  BodyWriter(detail::SumTree& sums, std::vector<std::uint8_t>& out) : sums_(sums), out_(out) {}
+  BodyWriter(detail::SumTree& sums, detail::EncodedBlocks& last, std::vector<std::uint8_t>& out)
+      : sums_(sums), last_(last), out_(out) {}
 
   std::size_t run() {
     sums_.forget_path();
     detail::SumNode* root = sums_.root_node();
+    State s = State::kUnknown;
+    if (root != nullptr) s = write(root, octomap::OcTreeKey(32768, 32768, 32768), 0);
+    last_.blocks.swap(next_);  // blocks no longer in the map are forgotten
+    sums_.forget_changes();
     if (root == nullptr) return 0;
-    const State s = write(root);
     if (s == State::kUnknown) {
       sums_.drop_all();
+      last_.blocks.clear();
       return 0;
     }
     if (s != State::kMixed) {  // the whole key space in one state: a root with 8 leaves
@@ -49,15 +56,39 @@ class BodyWriter {
   }
 
  private:
-  State write(detail::SumNode* node) {
+  State write(detail::SumNode* node, const octomap::OcTreeKey& key, unsigned depth) {
     if (!sums_.nodeHasChildren(node)) return leaf_state(node->getValue());
+    if (depth != detail::SumTree::kBlockDepth) return write_inner(node, key, depth);
+    const std::uint64_t id = detail::SumTree::block_of(key);
+    if (!sums_.changed(id)) {
+      if (auto it = last_.blocks.find(id); it != last_.blocks.end()) {
+        out_.insert(out_.end(), it->second.bytes.begin(), it->second.bytes.end());
+        nodes_ += it->second.nodes;
+        const auto state = static_cast<State>(it->second.state);
+        next_.emplace(id, std::move(it->second));
+        return state;
+      }
+    }
+    const std::size_t at = out_.size(), nodes_before = nodes_;
+    const State state = write_inner(node, key, depth);
+    detail::EncodedBlock& block = next_[id];
+    block.bytes.assign(out_.begin() + static_cast<std::ptrdiff_t>(at), out_.end());
+    block.state = static_cast<std::uint8_t>(state);
+    block.nodes = nodes_ - nodes_before;
+    return state;
+  }
+
+  State write_inner(detail::SumNode* node, const octomap::OcTreeKey& key, unsigned depth) {
     const std::size_t at = out_.size();
     out_.resize(at + 2, 0);
     State states[8];
+    const auto offset = static_cast<octomap::key_type>(32768 >> (depth + 1));
     for (unsigned i = 0; i < 8; ++i) {
       states[i] = State::kUnknown;
       if (!sums_.nodeChildExists(node, i)) continue;
-      states[i] = write(sums_.getNodeChild(node, i));  // depth <= 16: bounded recursion
+      octomap::OcTreeKey child_key;
+      octomap::computeChildKey(i, offset, key, child_key);
+      states[i] = write(sums_.getNodeChild(node, i), child_key, depth + 1);  // depth <= 16: bounded recursion
       if (states[i] == State::kUnknown) sums_.drop_child(node, i);
     }
     sums_.pruneNode(node);  // merges 8 equal leaves; no-op otherwise
@@ -75,6 +106,8 @@ class BodyWriter {
   }
 
   detail::SumTree& sums_;
+  detail::EncodedBlocks& last_;
+  std::unordered_map<std::uint64_t, detail::EncodedBlock> next_;
   std::vector<std::uint8_t>& out_;
   std::size_t nodes_ = 0;
 };
@@ -127,7 +160,7 @@ struct VoteSink {
 
 GlobalFusion::Encoded GlobalFusion::encode() {
   Encoded e;
-  e.nodes = BodyWriter(*sums_, e.body).run();
+  e.nodes = BodyWriter(*sums_, *encoded_, e.body).run();
   const std::string header = bt_header(e.nodes, resolution_);
   e.bt.reserve(header.size() + e.body.size());
   e.bt.assign(header.begin(), header.end());

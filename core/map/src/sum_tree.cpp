@@ -62,7 +62,44 @@ void SumTree::add_subtree(SumNode* node, std::int64_t delta) {
   }
 }
 
+void SumTree::note_change(const octomap::OcTreeKey& key, unsigned level) {
+  if (all_changed_) return;
+  if (level <= kTreeDepth - kBlockDepth) {
+    const std::uint64_t block = block_of(key);
+    if (block != last_block_) changed_blocks_.insert(block);
+    last_block_ = block;
+    return;
+  }
+  constexpr std::size_t kMaxRegions = 256;  // beyond: treat everything as changed
+  if (changed_regions_.size() >= kMaxRegions) {
+    all_changed_ = true;
+    return;
+  }
+  changed_regions_.emplace_back(key, level);
+}
+
+bool SumTree::changed(std::uint64_t block) const {
+  if (all_changed_ || changed_blocks_.count(block) != 0) return true;
+  for (const auto& [key, level] : changed_regions_) {
+    const unsigned shift = level - (kTreeDepth - kBlockDepth);  // block bits inside the region
+    bool inside = true;
+    for (unsigned a = 0; a < 3 && inside; ++a) {
+      inside = ((block >> (16 * a)) & 0xFFFFU) >> shift == static_cast<std::uint64_t>(key[a] >> level);
+    }
+    if (inside) return true;
+  }
+  return false;
+}
+
+void SumTree::forget_changes() {
+  changed_blocks_.clear();
+  changed_regions_.clear();
+  all_changed_ = false;
+  last_block_ = ~std::uint64_t{0};
+}
+
 void SumTree::add(const octomap::OcTreeKey& key, unsigned level, std::int64_t delta) {
+  note_change(key, level);
   bool fresh = false;
   SumNode* node = descend(key, kTreeDepth - level, fresh);
   if (fresh) {
@@ -84,6 +121,7 @@ void SumTree::drop_child(SumNode* parent, unsigned i) {
 
 void SumTree::drop_all() {
   clear();
+  all_changed_ = true;
   path_depth_ = 0;
 }
 

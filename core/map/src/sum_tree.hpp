@@ -8,6 +8,9 @@
 #include <array>
 #include <cmath>
 #include <cstdint>
+#include <unordered_map>
+#include <unordered_set>
+#include <utility>
 #include <vector>
 
 #include <octomap/OcTreeBase.h>
@@ -46,6 +49,18 @@ class SumTree : public octomap::OcTreeBase<SumNode> {
  public:
   explicit SumTree(double resolution) : octomap::OcTreeBase<SumNode>(resolution) {}
 
+  /// The encoder keeps the bytes of the subtrees at this depth (2^(16 - kBlockDepth) voxels a
+  /// side: 1.6 m at 5 cm) and writes again only those whose sums changed.
+  static constexpr unsigned kBlockDepth = 11;
+  /// The block (subtree at kBlockDepth) holding `key`.
+  static std::uint64_t block_of(const octomap::OcTreeKey& key) {
+    constexpr unsigned s = 16 - kBlockDepth;
+    return std::uint64_t{key[0]} >> s | (std::uint64_t{key[1]} >> s) << 16 | (std::uint64_t{key[2]} >> s) << 32;
+  }
+  /// Whether any voxel of `block` changed since the last forget_changes().
+  bool changed(std::uint64_t block) const;
+  void forget_changes();
+
   /// Adds `delta` to every voxel of the aligned block of 2^level voxels per side holding `key`.
   void add(const octomap::OcTreeKey& key, unsigned level, std::int64_t delta);
   SumNode* root_node() { return root; }
@@ -62,9 +77,27 @@ class SumTree : public octomap::OcTreeBase<SumNode> {
   SumNode* new_child(SumNode* node, unsigned i, std::int64_t value);
   void add_subtree(SumNode* node, std::int64_t delta);
 
+  void note_change(const octomap::OcTreeKey& key, unsigned level);
+
   std::array<SumNode*, 17> path_{};  ///< nodes of the last descent, by depth
+  std::unordered_set<std::uint64_t> changed_blocks_;  ///< blocks touched by add()
+  std::vector<std::pair<octomap::OcTreeKey, unsigned>> changed_regions_;  ///< adds of more than a block
+  bool all_changed_ = true;          ///< too many large adds to list (or nothing encoded yet)
+  std::uint64_t last_block_ = ~std::uint64_t{0};  ///< the block noted last (adds come in runs)
   octomap::OcTreeKey path_key_;
   unsigned path_depth_ = 0;
+};
+
+/// The encoder's bytes of one block (BodyWriter's output for that subtree), its maximum-
+/// likelihood state (0 unknown, 1 free, 2 occupied, 3 mixed) and the nodes it wrote.
+struct EncodedBlock {
+  std::vector<std::uint8_t> bytes;
+  std::uint8_t state = 0;
+  std::size_t nodes = 0;
+};
+/// The blocks of the last encoding, by SumTree::block_of().
+struct EncodedBlocks {
+  std::unordered_map<std::uint64_t, EncodedBlock> blocks;
 };
 
 }  // namespace mapmerge::detail

@@ -30,6 +30,7 @@ namespace mapmerge {
 
 namespace detail {
 class SumTree;
+struct EncodedBlocks;
 }
 
 /// A robot's map placed in the global frame, named for provenance.
@@ -86,6 +87,9 @@ class GlobalFusion {
   /// The global map as a `.bt` payload (OcTree::writeBinary's bytes: maximum-likelihood
   /// occupancy, pruned) and as the bare binary body of octomap_msgs/Octomap. One pass over the
   /// global map, which also prunes the internal sums (merges equal blocks, drops empty space).
+  /// The bytes of every block (a subtree of 2^5 voxels a side) are kept, and a block none of
+  /// whose voxels changed since the last encode() is copied, not walked: encoding after an
+  /// update costs O(changed blocks + their count), plus copying the bytes.
   struct Encoded {
     std::vector<std::uint8_t> bt;    ///< header + body
     std::vector<std::uint8_t> body;  ///< body only (octomap_msgs binary)
@@ -114,6 +118,7 @@ class GlobalFusion {
   double resolution_;
   FuseConfig config_;
   std::unique_ptr<detail::SumTree> sums_;
+  std::unique_ptr<detail::EncodedBlocks> encoded_;  ///< the last encode()'s blocks
   std::map<std::string, Entry> robots_;
 };
 
