@@ -28,7 +28,8 @@ double cpu_ms() {
 }
 
 struct Robot {
-  std::shared_ptr<const octomap::OcTree> map, grown;
+  std::shared_ptr<const octomap::OcTree> map, grown;  ///< as the server holds them: decoded from `.bt`
+  std::shared_ptr<const std::vector<std::uint8_t>> map_body, grown_body;  ///< their binary bodies
   Eigen::Matrix4d T_global_robot;
   std::size_t payload_bytes = 0;
 };
@@ -49,8 +50,13 @@ std::vector<Robot> make_fleet(const octomap::OcTree& world, int n, double share,
       return Eigen::AlignedBox3d(Eigen::Vector3d(x0 + i * step, y0, z0), Eigen::Vector3d(x0 + i * step + length + extra, y1, z1));
     };
     Robot r;
-    r.map = crop_and_transform(world, box(0), T);
-    r.grown = crop_and_transform(world, box(grow), T);
+    auto received = [](const octomap::OcTree& tree, std::shared_ptr<const std::vector<std::uint8_t>>& body) {
+      DecodeResult d = decode_map(encode_map(tree, Encoding::kOctomapBt), Encoding::kOctomapBt, DecodeLimits{});
+      body = d.binary_body;
+      return std::shared_ptr<const octomap::OcTree>(std::move(d.tree));
+    };
+    r.map = received(*crop_and_transform(world, box(0), T), r.map_body);
+    r.grown = received(*crop_and_transform(world, box(grow), T), r.grown_body);
     r.T_global_robot = T.inverse().matrix();
     r.payload_bytes = encode_map(*r.map, Encoding::kOctomapBt).size();
     fleet.push_back(std::move(r));
@@ -73,8 +79,8 @@ int main(int argc, char** argv) {
   const auto world = read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/" + map);
   const double res = world->getResolution();
   std::printf("map %s, a robot's map grows by %.1f m per update; CPU ms\n", map.c_str(), grow);
-  std::printf("| N | full re-fusion + prune + encode | GlobalFusion all | update (diff) | encode after it | pose change | encode after it | encode unchanged | provenance | decode robot | sums MB | robot tree MB | robot payload MB |\n");
-  std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+  std::printf("| N | full re-fusion + prune + encode | GlobalFusion all | update (diff of trees) | update (diff of bodies) | encode after it | pose change | encode after it | encode unchanged | provenance | decode robot | sums MB | robot tree MB | robot payload MB |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
   for (const int n : sizes) {
     const auto fleet = make_fleet(*world, n, share, grow);
     std::vector<MapInGlobal> placed;
@@ -87,13 +93,19 @@ int main(int argc, char** argv) {
 
     GlobalFusion g(res);
     t = cpu_ms();
-    for (std::size_t i = 0; i < fleet.size(); ++i) g.set("r" + std::to_string(i), fleet[i].map, fleet[i].T_global_robot);
+    for (std::size_t i = 0; i < fleet.size(); ++i)
+      g.set("r" + std::to_string(i), fleet[i].map, fleet[i].T_global_robot, fleet[i].map_body);
     g.encode();
     const double t_all = cpu_ms() - t;
     const std::size_t k = fleet.size() / 2;  // a robot in the middle of the fleet
     t = cpu_ms();
-    const GlobalFuseResult up = g.set("r" + std::to_string(k), fleet[k].grown, fleet[k].T_global_robot);
+    const GlobalFuseResult up = g.set("r" + std::to_string(k), fleet[k].grown, fleet[k].T_global_robot);  // no body
     const double t_update = cpu_ms() - t;
+    g.set("r" + std::to_string(k), fleet[k].map, fleet[k].T_global_robot, fleet[k].map_body);  // back (tree walk)
+    t = cpu_ms();
+    const GlobalFuseResult up_bytes =
+        g.set("r" + std::to_string(k), fleet[k].grown, fleet[k].T_global_robot, fleet[k].grown_body);
+    const double t_update_bytes = cpu_ms() - t;
     t = cpu_ms();
     const auto encoded_update = g.encode();  // the blocks the grown map changed, the rest copied
     const double t_encode_update = cpu_ms() - t;
@@ -115,8 +127,9 @@ int main(int argc, char** argv) {
     t = cpu_ms();
     const DecodeResult d = decode_map(payload, Encoding::kOctomapBt, DecodeLimits{});
     const double t_decode = cpu_ms() - t;
-    std::printf("| %d | %.0f | %.0f | %.1f (%s, %zu cubes) | %.1f (%zu kB) | %.0f | %.1f (%zu kB) | %.1f (%zu kB) | %.0f (%zu voxels) | %.1f | %.1f | %.2f | %.3f |\n", n,
-                t_full, t_all, t_update, up.incremental ? "diff" : "full", up.cubes, t_encode_update,
+    std::printf("| %d | %.0f | %.0f | %.1f (%s, %zu cubes) | %.1f (%s) | %.1f (%zu kB) | %.0f | %.1f (%zu kB) | %.1f (%zu kB) | %.0f (%zu voxels) | %.1f | %.1f | %.2f | %.3f |\n", n,
+                t_full, t_all, t_update, up.incremental ? "diff" : "full", up.cubes, t_update_bytes,
+                up_bytes.from_bodies ? "bytes" : "trees", t_encode_update,
                 encoded_update.bt.size() / 1024, t_pose, t_encode, encoded.bt.size() / 1024, t_encode_again,
                 again.bt.size() / 1024, t_prov, p.owner.size(), t_decode, g.memory_usage() / 1e6, d.tree ? d.tree->memoryUsage() / 1e6 : 0.0,
                 payload.size() / 1e6);

@@ -56,7 +56,7 @@ std::map<std::string, std::vector<double>> incremental_stages(const std::string&
       stages["map store"].push_back(b);
       continue;
     }
-    if (line.find("(1 re-fused, 1 by difference)") == std::string::npos) continue;
+    if (line.find("(1 re-fused, 1 by difference") == std::string::npos) continue;
     const auto at = line.find("(fuse ");
     if (at != std::string::npos &&
         std::sscanf(line.c_str() + at, "(fuse %lf, encode %lf, poses %lf, store %lf, publish %lf)", &a, &b, &c, &d, &e) == 5) {

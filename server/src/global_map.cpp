@@ -54,7 +54,7 @@ std::vector<PlacedMap> GlobalMapBuilder::placed_maps(const Registry& registry,
     if (fused && max_displacement(*fused, T, extent(robot, rec->tree)) < 0.5 * fusion_->resolution()) {
       T = *fused;  // no voxel of the map would move by half a voxel: keep what is fused
     }
-    maps.push_back(PlacedMap{robot, rec->tree, T});
+    maps.push_back(PlacedMap{robot, rec->tree, T, rec->body});
     contributors.push_back(Contribution{robot, rec->session_id, rec->sequence});
   }
   return maps;
@@ -74,6 +74,7 @@ bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Con
     if (fused && *fused == maps[i].T_global_robot) continue;
     if (fused) {  // as it is fused now, with the contribution fused then
       maps[i].tree = fusion_->map_of(maps[i].robot);
+      maps[i].body = fusion_->body_of(maps[i].robot);
       maps[i].T_global_robot = *fused;
       const auto c = fused_contributions_.find(maps[i].robot);
       if (c != fused_contributions_.end()) contributors[i] = c->second;
@@ -139,7 +140,7 @@ std::optional<GlobalMapOut> GlobalMapBuilder::build(const Registry& registry, st
   g.encoding = to_string(encoding);
   const auto t2 = std::chrono::steady_clock::now();
   stages_ = Stages{std::chrono::duration<double>(t1 - t0).count(), std::chrono::duration<double>(t2 - t1).count(),
-                   sync.updated, sync.incremental};
+                   sync.updated, sync.incremental, sync.from_bodies};
   return g;
 }
 

@@ -82,6 +82,7 @@ DecodedMap decode_sample(const MapSample& s, const DecodeLimits& limits) {
     return out;
   }
   out.tree = std::shared_ptr<const octomap::OcTree>(std::move(r.tree));
+  out.body = std::move(r.binary_body);
   return out;
 }
 
@@ -141,12 +142,13 @@ GlobalSync sync_global(GlobalFusion& fusion, const std::vector<PlacedMap>& maps,
     const auto r = refused.find(m.robot);
     if (r != refused.end() && r->second.first.lock() == m.tree && r->second.second == m.T_global_robot) continue;
     try {
-      const GlobalFuseResult res = fusion.set(m.robot, m.tree, m.T_global_robot);  // !ok: robot left out
+      const GlobalFuseResult res = fusion.set(m.robot, m.tree, m.T_global_robot, m.body);  // !ok: robot left out
       if (!res.ok) throw MapError(res.reason);
       refused.erase(m.robot);
       out.fused.push_back(m.robot);
       ++out.updated;
       out.incremental += res.incremental ? 1 : 0;
+      out.from_bodies += res.from_bodies ? 1 : 0;
     } catch (const std::exception& e) {
       fusion.remove(m.robot);
       refused[m.robot] = {m.tree, m.T_global_robot};

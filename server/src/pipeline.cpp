@@ -99,6 +99,7 @@ bool Pipeline::ingest(const MapSample& m, bool persist) {
   r.resolution = decoded.tree->getResolution();
   r.received_unix = m.received_unix;
   r.tree = decoded.tree;
+  r.body = decoded.body;
   r.content_hash = content_hash(m);
   const std::size_t leaves = decoded.tree->getNumLeafNodes();
   warn_on_resolution(robot, r.resolution);

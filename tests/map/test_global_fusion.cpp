@@ -175,6 +175,65 @@ TEST_F(GlobalFusionTest, EncodingAfterEveryChangeEqualsAFreshEncoding) {
   }
 }
 
+/// `tree` as a robot sends it: encoded as `.bt`, then decoded (tree and binary body).
+std::pair<Tree, std::shared_ptr<const std::vector<std::uint8_t>>> sent(const octomap::OcTree& tree) {
+  DecodeResult d = decode_map(encode_map(tree, Encoding::kOctomapBt), Encoding::kOctomapBt, DecodeLimits{});
+  EXPECT_TRUE(d.ok()) << d.reason;
+  EXPECT_TRUE(d.binary_body != nullptr);
+  return {Tree(std::move(d.tree)), d.binary_body};
+}
+
+TEST_F(GlobalFusionTest, DifferencesReadOffTheBinaryBodiesEqualTheTreeWalk) {
+  // The same sequence of received maps of one robot (grown, shrunk, edited inside, back to the
+  // first), fused once with the payloads' binary bodies and once from the trees alone: the
+  // clamped global maps must agree voxel for voxel and byte for byte after every update.
+  const double res = world_->getResolution();
+  const Robot r2 = cut(*world_, "r2", -8, 6, 1.1);
+  const Robot r3 = cut(*world_, "r3", 2, 20, -2.3);
+  const Robot grown = cut(*world_, "r2", -8, 12, 1.1);
+  const Robot shrunk = cut(*world_, "r2", -5, 9, 1.1);
+  auto edited = std::make_unique<octomap::OcTree>(*shrunk.map);
+  double lo[3], hi[3];
+  edited->getMetricMin(lo[0], lo[1], lo[2]);
+  edited->getMetricMax(hi[0], hi[1], hi[2]);
+  const double cx = 0.5 * (lo[0] + hi[0]), cy = 0.5 * (lo[1] + hi[1]), cz = 0.5 * (lo[2] + hi[2]);
+  for (double x = cx; x < cx + 1.3; x += res)  // a block made occupied: prunes into large leaves
+    for (double y = cy; y < cy + 1.3; y += res)
+      for (double z = cz; z < cz + 0.7; z += res) edited->updateNode(octomap::point3d(x, y, z), true);
+  for (double x = cx - 2.0; x < cx - 1.0; x += res)  // a block made free, known where it was not
+    for (double y = cy - 2.0; y < cy - 1.0; y += res)
+      for (double z = lo[2]; z < hi[2]; z += res) edited->setNodeValue(octomap::point3d(x, y, z), -2.0f);
+  edited->prune();
+  const std::vector<std::pair<const octomap::OcTree*, const char*>> updates{
+      {r2.map.get(), "first"},
+      {grown.map.get(), "grown"},
+      {shrunk.map.get(), "shrunk"},
+      {edited.get(), "edited"},
+      {r2.map.get(), "the first again"},
+  };
+  const auto [r3_map, r3_body] = sent(*r3.map);
+  GlobalFusion with_bodies(res), trees_only(res);
+  ASSERT_TRUE(with_bodies.set("r3", r3_map, T_global(r3), r3_body).ok);
+  ASSERT_TRUE(trees_only.set("r3", r3_map, T_global(r3)).ok);
+  std::vector<Tree> held;  // GlobalFusion holds only the latest map of a robot
+  for (std::size_t k = 0; k < updates.size(); ++k) {
+    const auto [map, body] = sent(*updates[k].first);
+    held.push_back(map);
+    const GlobalFuseResult a = with_bodies.set("r2", map, T_global(r2), body);
+    const GlobalFuseResult b = trees_only.set("r2", map, T_global(r2));
+    ASSERT_TRUE(a.ok && b.ok) << updates[k].second;
+    EXPECT_EQ(a.incremental, k > 0) << updates[k].second;
+    EXPECT_EQ(a.from_bodies, k > 0) << updates[k].second;
+    EXPECT_FALSE(b.from_bodies);
+    EXPECT_EQ(a.cubes, b.cubes) << updates[k].second;
+    EXPECT_EQ(a.work, b.work) << updates[k].second;  // what FuseConfig::max_work is checked against
+    expect_same_voxels(*with_bodies.tree(), *trees_only.tree());
+    EXPECT_TRUE(with_bodies.encode().bt == trees_only.encode().bt) << updates[k].second;
+  }
+  EXPECT_TRUE(with_bodies.body_of("r2") != nullptr);
+  EXPECT_TRUE(trees_only.body_of("r2") == nullptr);
+}
+
 TEST_F(GlobalFusionTest, EncodedMapIsTheMaximumLikelihoodOfTheClampedSums) {
   const double res = world_->getResolution();
   const Robot r2 = cut(*world_, "r2", -8, 6, 1.1);

@@ -81,6 +81,8 @@ TEST_F(ServerFleet, RobotMappingAtACoarserResolutionIsAlignedAndFusedResampled) 
   const auto pose = op.poses().at("r2");
   EXPECT_LT(rotation_error_deg(fleet().truth(1), pose.T_global_robot), kMaxRotationDeg);
   EXPECT_LT(translation_error_m(fleet().truth(1), pose.T_global_robot), kMaxTranslationM);
+  // The status topic is periodic: the one that shows r2's map may come after its pose.
+  ASSERT_TRUE(op.wait_for([&] { return op.status().resolution["r2"] > 0.0; }, 30s)) << server->log();
   EXPECT_DOUBLE_EQ(op.status().resolution["r2"], coarse->getResolution());
   EXPECT_NE(server->log().find("differs from the reference's"), std::string::npos) << server->log();
   const auto global = op.global();

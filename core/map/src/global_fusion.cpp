@@ -103,6 +103,111 @@ class TreeDiff {
   const FuseConfig& config_;
 };
 
+/// The same difference as TreeDiff, read off the binary bodies the two trees were decoded from
+/// (OcTree::writeBinaryData: per inner node 2 bytes of 8 two-bit child codes, depth-first): one
+/// sequential pass over the bytes instead of chasing two trees' pointers. Leaves of a body carry
+/// the log-odds its tree's reader gave them (the tree's clamping bounds). The bodies are
+/// validated (decode_map's pre-pass), so the recursion is at most 16 deep and never reads past
+/// their ends.
+class BodyDiff {
+ public:
+  BodyDiff(const std::vector<std::uint8_t>& before, const octomap::OcTree& before_tree,
+           const std::vector<std::uint8_t>& after, const octomap::OcTree& after_tree, double target_res,
+           const FuseConfig& config)
+      : a_(before), b_(after), after_(after_tree), target_res_(target_res), config_(config) {
+    ea_[kFree] = evidence(before_tree.getClampingThresMinLog(), config);
+    ea_[kOccupied] = evidence(before_tree.getClampingThresMaxLog(), config);
+    eb_[kFree] = evidence(after_tree.getClampingThresMinLog(), config);
+    eb_[kOccupied] = evidence(after_tree.getClampingThresMaxLog(), config);
+  }
+
+  void run() {
+    const octomap::OcTreeKey root(32768, 32768, 32768);
+    std::size_t pa = 0, pb = 0;
+    if (!a_.empty() && !b_.empty()) {
+      both(pa, pb, root, 0);
+    } else if (!b_.empty()) {
+      one_side(false, pb, root, 0, kUnknown);
+    } else if (!a_.empty()) {
+      one_side(true, pa, root, 0, kUnknown);
+    }
+  }
+  std::vector<ChangedCube> cubes;
+  double work = 0.0;  ///< fusion work of the new map (as TreeDiff counts it)
+
+ private:
+  enum Code : unsigned { kUnknown = 0, kFree = 1, kOccupied = 2, kInner = 3 };
+
+  static unsigned code(const std::vector<std::uint8_t>& body, std::size_t pos, unsigned i) {
+    return (body[pos + i / 4] >> (2 * (i % 4))) & 3U;
+  }
+  static octomap::OcTreeKey child_key(const octomap::OcTreeKey& key, unsigned depth, unsigned i) {
+    octomap::OcTreeKey k;
+    octomap::computeChildKey(i, static_cast<octomap::key_type>(32768 >> (depth + 1)), key, k);
+    return k;
+  }
+  /// A leaf (or unknown space) of the new map at `depth`: its fusion work.
+  void count(unsigned c, unsigned depth) {
+    if (c == kOccupied || (c == kFree && config_.fuse_free)) {
+      work += detail::leaf_fusion_work(std::max(1.0, std::ceil(after_.getNodeSize(depth) / target_res_)));
+    }
+  }
+  /// Two uniform values over the node at (key, depth): a cube where their evidence differs.
+  void compare(unsigned ca, unsigned cb, const octomap::OcTreeKey& key, unsigned depth) {
+    const std::int64_t ea = ca == kUnknown ? 0 : ea_[ca], eb = cb == kUnknown ? 0 : eb_[cb];
+    if (ea == eb) return;
+    cubes.push_back({Eigen::Vector3d(after_.keyToCoord(key[0], depth), after_.keyToCoord(key[1], depth),
+                                     after_.keyToCoord(key[2], depth)),
+                     after_.getNodeSize(depth), eb - ea});
+  }
+  /// Both maps have an inner node at (key, depth), at pa and pb.
+  void both(std::size_t& pa, std::size_t& pb, const octomap::OcTreeKey& key, unsigned depth) {
+    const std::size_t na = pa, nb = pb;
+    pa += 2;
+    pb += 2;
+    for (unsigned i = 0; i < 8; ++i) {
+      const unsigned ca = code(a_, na, i), cb = code(b_, nb, i);
+      const octomap::OcTreeKey k = child_key(key, depth, i);
+      if (ca == kInner && cb == kInner) {
+        both(pa, pb, k, depth + 1);
+      } else if (ca == kInner) {
+        count(cb, depth + 1);
+        one_side(true, pa, k, depth + 1, cb);
+      } else if (cb == kInner) {
+        one_side(false, pb, k, depth + 1, ca);
+      } else {
+        count(cb, depth + 1);
+        compare(ca, cb, k, depth + 1);
+      }
+    }
+  }
+  /// One map (`before` or not) has an inner node at (key, depth), at pos; the other is uniform
+  /// (`other`: unknown, free or occupied) over it.
+  void one_side(bool before, std::size_t& pos, const octomap::OcTreeKey& key, unsigned depth, unsigned other) {
+    const std::vector<std::uint8_t>& body = before ? a_ : b_;
+    const std::size_t node = pos;
+    pos += 2;
+    for (unsigned i = 0; i < 8; ++i) {
+      const unsigned c = code(body, node, i);
+      const octomap::OcTreeKey k = child_key(key, depth, i);
+      if (c == kInner) {
+        one_side(before, pos, k, depth + 1, other);
+        continue;
+      }
+      if (!before) count(c, depth + 1);
+      before ? compare(c, other, k, depth + 1) : compare(other, c, k, depth + 1);
+    }
+  }
+
+  const std::vector<std::uint8_t>& a_;
+  const std::vector<std::uint8_t>& b_;
+  const octomap::OcTree& after_;
+  double target_res_;
+  const FuseConfig& config_;
+  std::int64_t ea_[3] = {0, 0, 0};
+  std::int64_t eb_[3] = {0, 0, 0};
+};
+
 /// Packed votes of source leaves finer than the target's voxels: the largest per voxel.
 using FineVotes = std::unordered_map<octomap::OcTreeKey, float, octomap::OcTreeKey::KeyHash>;
 
@@ -144,6 +249,11 @@ std::shared_ptr<const octomap::OcTree> GlobalFusion::map_of(const std::string& r
   return it == robots_.end() ? nullptr : it->second.map;
 }
 
+std::shared_ptr<const std::vector<std::uint8_t>> GlobalFusion::body_of(const std::string& robot) const {
+  const auto it = robots_.find(robot);
+  return it == robots_.end() ? nullptr : it->second.body;
+}
+
 std::size_t GlobalFusion::memory_usage() const { return sums_->memoryUsage(); }
 
 void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stats) {
@@ -175,18 +285,31 @@ void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stat
 }
 
 bool GlobalFusion::add_difference(const Entry& before, const Entry& after, GlobalFuseResult& stats) {
-  TreeDiff diff(*before.map, *after.map, resolution_, config_);
-  diff.run();
-  if (diff.work > config_.max_work) {
-    stats.reason = "map would cost ~" + std::to_string(static_cast<long long>(diff.work)) +
+  std::vector<ChangedCube> cubes;
+  double work = 0.0;
+  if (before.body && after.body) {
+    BodyDiff diff(*before.body, *before.map, *after.body, *after.map, resolution_, config_);
+    diff.run();
+    cubes = std::move(diff.cubes);
+    work = diff.work;
+    stats.from_bodies = true;
+  } else {
+    TreeDiff diff(*before.map, *after.map, resolution_, config_);
+    diff.run();
+    cubes = std::move(diff.cubes);
+    work = diff.work;
+  }
+  stats.work = work;
+  if (work > config_.max_work) {
+    stats.reason = "map would cost ~" + std::to_string(static_cast<long long>(work)) +
                    " voxel visits, more than max_work (huge pruned leaves?)";
     return false;
   }
   FuseResult counts;
   SumSink sink{*sums_};
   detail::LeafMapper<SumSink, std::int64_t> mapper(after.T_global_robot, resolution_, sink, counts);
-  for (const ChangedCube& cube : diff.cubes) mapper.add_cube(cube.centre, cube.size, cube.delta);
-  stats.cubes += diff.cubes.size();
+  for (const ChangedCube& cube : cubes) mapper.add_cube(cube.centre, cube.size, cube.delta);
+  stats.cubes += cubes.size();
   stats.voxel_updates += counts.voxel_updates;
   stats.block_updates += counts.block_updates;
   return true;
@@ -194,14 +317,15 @@ bool GlobalFusion::add_difference(const Entry& before, const Entry& after, Globa
 
 GlobalFuseResult GlobalFusion::set(const std::string& robot,
                                    std::shared_ptr<const octomap::OcTree> map,
-                                   const Eigen::Matrix4d& T_global_robot) {
+                                   const Eigen::Matrix4d& T_global_robot,
+                                   std::shared_ptr<const std::vector<std::uint8_t>> binary_body) {
   GlobalFuseResult r;
   r.reason = map ? detail::check_rigid(T_global_robot, config_.rigid_tolerance) : "no map";
   if (!r.reason.empty()) {
     remove(robot);
     return r;
   }
-  Entry next{std::move(map), T_global_robot};
+  Entry next{std::move(map), T_global_robot, std::move(binary_body)};
   const auto it = robots_.find(robot);
   if (it != robots_.end() && it->second.map == next.map && it->second.T_global_robot == T_global_robot) {
     r.ok = true;
@@ -215,6 +339,7 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot,
     r.incremental = r.ok;
   } else {
     const double work = detail::estimate_work(*next.map, resolution_, config_.fuse_free);
+    r.work = work;
     r.ok = work <= config_.max_work;
     if (!r.ok) {
       r.reason = "map would cost ~" + std::to_string(static_cast<long long>(work)) +

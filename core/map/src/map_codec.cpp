@@ -87,6 +87,7 @@ DecodeResult decode_body(double res, bool binary, const std::uint8_t* body, std:
     result.tree->readData(in);
   }
   result.num_nodes = result.tree->size();
+  if (binary) result.binary_body = std::make_shared<const std::vector<std::uint8_t>>(body, body + size);
   if (!in || result.num_nodes != scan.num_nodes) {
     return rejected(DecodeError::kMalformedTree, "OctoMap read " +
                                                      std::to_string(result.num_nodes) +

@@ -42,6 +42,7 @@ class GlobalMapBuilder {
     double fuse_s = 0.0;    ///< bringing the fusion up to date
     double encode_s = 0.0;  ///< serialising the global map
     std::size_t updated = 0, incremental = 0;  ///< robots re-fused, of which only the difference
+    std::size_t from_bodies = 0;  ///< ... of which read off the payloads' bytes (no tree walk)
   };
   Stages last_stages() const { return stages_; }
   /// Bytes held by the global map's sums.

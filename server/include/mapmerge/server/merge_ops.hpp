@@ -22,6 +22,7 @@ namespace mapmerge::server {
 
 struct DecodedMap {
   std::shared_ptr<const octomap::OcTree> tree;  ///< null when rejected
+  std::shared_ptr<const std::vector<std::uint8_t>> body;  ///< the binary body it was read from (null for `.ot`)
   std::string reason;                           ///< why rejected
 };
 
@@ -58,6 +59,7 @@ struct PlacedMap {
   std::string robot;                 ///< robot id (for skip reports)
   std::shared_ptr<const octomap::OcTree> tree;
   Eigen::Matrix4d T_global_robot = Eigen::Matrix4d::Identity();
+  std::shared_ptr<const std::vector<std::uint8_t>> body{};  ///< tree's binary body, or null (GlobalFusion::set)
 };
 
 /// Whether `after` is more than `translation` [m] or `rotation_deg` [deg] away from `before`.
@@ -70,6 +72,7 @@ struct GlobalSync {
   std::vector<std::pair<std::string, std::string>> skipped;  ///< (robot, reason) left out
   std::size_t updated = 0;           ///< robots (re)fused by this sync
   std::size_t incremental = 0;       ///< ... of which only the difference (same pose, grown map)
+  std::size_t from_bodies = 0;       ///< ... of which diffed on the maps' binary bodies
 };
 
 /// Robot -> the map and pose a fusion refused: not tried again until either changes.

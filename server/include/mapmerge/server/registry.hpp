@@ -31,6 +31,7 @@ struct RobotRecord {
   double resolution = 0.0;           ///< [m]
   double received_unix = 0.0;        ///< arrival time of the map held [s since epoch]
   std::shared_ptr<const octomap::OcTree> tree;             ///< null until a map was accepted
+  std::shared_ptr<const std::vector<std::uint8_t>> body;   ///< binary body `tree` was read from (null for `.ot`)
   std::shared_ptr<const align::PreparedMap> prepared;      ///< alignment features of `tree`
   std::uint64_t map_revision = 0;    ///< counts accepted maps of this robot (in memory)
   std::size_t content_hash = 0;      ///< hash of the payload bytes of the map held

@@ -50,7 +50,9 @@ struct GlobalFuseResult {
   bool ok = false;
   std::string reason;          ///< why the map was refused (it is then out of the global map)
   bool incremental = false;    ///< only the changed leaves were fused (same pose, same resolution)
+  bool from_bodies = false;    ///< ... found by diffing the two maps' binary bodies, not their trees
   std::size_t cubes = 0;       ///< source leaves (or changed leaf regions) placed on the grid
+  double work = 0.0;           ///< fusion work of the map (FuseConfig::max_work's measure)
   std::size_t voxel_updates = 0;
   std::size_t block_updates = 0;
 };
@@ -68,8 +70,12 @@ class GlobalFusion {
   /// Puts `robot`'s map at `T_global_robot` into the global map, replacing what it contributed
   /// before. The map is held (shared, never modified) to compute the next update's difference.
   /// A refused map (not rigid, too much work, null) takes the robot out of the global map.
+  /// `binary_body`: the validated binary body `map` was decoded from (DecodeResult::binary_body),
+  /// or null. When the held map has one too, a grown map's difference is read off the two bodies
+  /// (one pass over bytes, several times faster than walking both trees); same result.
   GlobalFuseResult set(const std::string& robot, std::shared_ptr<const octomap::OcTree> map,
-                       const Eigen::Matrix4d& T_global_robot);
+                       const Eigen::Matrix4d& T_global_robot,
+                       std::shared_ptr<const std::vector<std::uint8_t>> binary_body = nullptr);
   /// Takes `robot`'s contribution out (no-op for a robot not fused).
   void remove(const std::string& robot);
 
@@ -79,6 +85,8 @@ class GlobalFusion {
   std::optional<Eigen::Matrix4d> pose_of(const std::string& robot) const;
   /// The map `robot` is fused with (null for a robot not fused).
   std::shared_ptr<const octomap::OcTree> map_of(const std::string& robot) const;
+  /// The binary body given with that map (null if none was given).
+  std::shared_ptr<const std::vector<std::uint8_t>> body_of(const std::string& robot) const;
   /// Robots in the global map, sorted.
   std::vector<std::string> robots() const;
   double resolution() const { return resolution_; }
@@ -111,6 +119,7 @@ class GlobalFusion {
   struct Entry {
     std::shared_ptr<const octomap::OcTree> map;
     Eigen::Matrix4d T_global_robot;
+    std::shared_ptr<const std::vector<std::uint8_t>> body;  ///< map's binary body, or null
   };
   void add_full(const Entry& entry, int sign, GlobalFuseResult& stats);
   bool add_difference(const Entry& before, const Entry& after, GlobalFuseResult& stats);

@@ -79,6 +79,10 @@ struct DecodeResult {
   std::string reason;         ///< one line for the log; empty when accepted
   bool empty = false;         ///< accepted, but the map holds no nodes (valid, flag it upstream)
   std::size_t num_nodes = 0;  ///< nodes in the decoded tree (inner + leaves)
+  /// The binary body (OcTree::writeBinaryData's bytes) the tree was read from, validated: set for
+  /// octomap-bt, octomap-bt+zstd and binary ROS 2 bodies of non-empty maps; null for full (`.ot`)
+  /// bodies. GlobalFusion diffs two such bodies instead of walking two trees.
+  std::shared_ptr<const std::vector<std::uint8_t>> binary_body;
 
   bool ok() const { return error == DecodeError::kNone; }
 };
