@@ -404,6 +404,8 @@ std::vector<Candidate> shortlist(std::vector<Candidate> all, const ValidateConfi
 
 std::size_t fine_samples(const ValidateConfig& c) { return c.coarse_points * 2; }
 
+constexpr const char* kAmbiguous = "ambiguous";
+
 /// Sorts refined candidates by score; empty string when the best passes every test and no
 /// distinct alternative comes close (repetitive corridors, symmetric rooms), else the reason.
 std::string select_best(std::vector<Candidate>& cands, const ValidateConfig& c,
@@ -421,7 +423,7 @@ std::string select_best(std::vector<Candidate>& cands, const ValidateConfig& c,
       continue;
     const double ratio = score_of(cands[i].fine, w) / std::max(1.0, score_of(best.fine, w));
     if (ratio >= c.ambiguity_ratio)
-      why = "ambiguous: a distinct transform scores " + std::to_string(ratio) + " of the best";
+      why = kAmbiguous + std::string(": a distinct transform scores ") + std::to_string(ratio) + " of the best";
   }
   return why;
 }
@@ -488,10 +490,19 @@ AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
   t0 = Clock::now();
   for (Candidate& c : cands)
     c.fine = check(target, source, c.T_refined, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);
-  const std::string why = select_best(cands, cfg.validate, units);
+  std::string why = select_best(cands, cfg.validate, units);
   add_ms(validate_ms, t0);
+  if (why.empty()) {
+    polish(target, source, cfg, cands.front(), result.timings, validate_ms);
+  } else if (why.rfind(kAmbiguous, 0) == 0) {
+    // Near-equal distinct candidates are often one basin that the first ICP left apart: the
+    // final pass brings them together (then one is a duplicate) or shows which one is better.
+    for (Candidate& c : cands) polish(target, source, cfg, c, result.timings, validate_ms);
+    t0 = Clock::now();
+    why = select_best(cands, cfg.validate, units);
+    add_ms(validate_ms, t0);
+  }
   Candidate& best = cands.front();
-  if (why.empty()) polish(target, source, cfg, best, result.timings, validate_ms);
   result.accepted = why.empty();
   result.T_target_source = result.accepted ? best.T_refined : Eigen::Matrix4d::Identity();
   result.fitness = best.fine.fitness;
