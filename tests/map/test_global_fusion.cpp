@@ -232,6 +232,15 @@ TEST_F(GlobalFusionTest, DifferencesReadOffTheBinaryBodiesEqualTheTreeWalk) {
   }
   EXPECT_TRUE(with_bodies.body_of("r2") != nullptr);
   EXPECT_TRUE(trees_only.body_of("r2") == nullptr);
+  // A body that is not the complete tree (here cut short) is not trusted: the trees are walked.
+  const auto [map, body] = sent(*grown.map);
+  const auto cut_short = std::make_shared<const std::vector<std::uint8_t>>(body->begin(), body->begin() + body->size() / 2);
+  const GlobalFuseResult a = with_bodies.set("r2", map, T_global(r2), cut_short);
+  const GlobalFuseResult b = trees_only.set("r2", map, T_global(r2));
+  ASSERT_TRUE(a.ok && b.ok);
+  EXPECT_TRUE(a.incremental);
+  EXPECT_FALSE(a.from_bodies);
+  expect_same_voxels(*with_bodies.tree(), *trees_only.tree());
 }
 
 TEST_F(GlobalFusionTest, EncodedMapIsTheMaximumLikelihoodOfTheClampedSums) {

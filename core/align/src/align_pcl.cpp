@@ -428,10 +428,11 @@ std::string select_best(std::vector<Candidate>& cands, const ValidateConfig& c,
   return why;
 }
 
-/// The final ICP pass with more points on the winner; kept when it validates at least as well.
+/// The final ICP pass with more points on a candidate; kept when it passes validation and
+/// scores at least `keep_ratio` of what the candidate scored before.
 void polish(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
             const AlignConfig& cfg, Candidate& best, StageTimings& t,
-            std::atomic<double>& validate_ms) {
+            std::atomic<double>& validate_ms, double keep_ratio) {
   const double res = scale_of(target, source);
   auto t0 = Clock::now();
   const Eigen::Matrix4d T = local_alignment(target, source, best.T_refined, cfg, true);
@@ -440,7 +441,7 @@ void polish(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
   const Validation v = check(target, source, T, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);
   add_ms(validate_ms, t0);
   const double w = cfg.validate.conflict_weight;
-  if (rejection(v, cfg.validate, res).empty() && score_of(v, w) >= 0.98 * score_of(best.fine, w)) {
+  if (rejection(v, cfg.validate, res).empty() && score_of(v, w) >= keep_ratio * score_of(best.fine, w)) {
     best.T_refined = T;
     best.fine = v;
   }
@@ -493,11 +494,13 @@ AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
   std::string why = select_best(cands, cfg.validate, units);
   add_ms(validate_ms, t0);
   if (why.empty()) {
-    polish(target, source, cfg, cands.front(), result.timings, validate_ms);
+    polish(target, source, cfg, cands.front(), result.timings, validate_ms, 0.98);
   } else if (why.rfind(kAmbiguous, 0) == 0) {
     // Near-equal distinct candidates are often one basin that the first ICP left apart: the
     // final pass brings them together (then one is a duplicate) or shows which one is better.
-    for (Candidate& c : cands) polish(target, source, cfg, c, result.timings, validate_ms);
+    // A pass is kept only if it scores no lower, so no alternative can fall below the ambiguity
+    // ratio by being polished worse.
+    for (Candidate& c : cands) polish(target, source, cfg, c, result.timings, validate_ms, 1.0);
     t0 = Clock::now();
     why = select_best(cands, cfg.validate, units);
     add_ms(validate_ms, t0);

@@ -121,7 +121,9 @@ class BodyDiff {
     eb_[kOccupied] = evidence(after_tree.getClampingThresMaxLog(), config);
   }
 
-  void run() {
+  /// False when a body is not a complete tree (not what decode_map validated): then nothing
+  /// read is meaningful and the caller walks the trees instead.
+  bool run() {
     const octomap::OcTreeKey root(32768, 32768, 32768);
     std::size_t pa = 0, pb = 0;
     if (!a_.empty() && !b_.empty()) {
@@ -131,6 +133,7 @@ class BodyDiff {
     } else if (!a_.empty()) {
       one_side(true, pa, root, 0, kUnknown);
     }
+    return ok_ && pa == a_.size() && pb == b_.size();
   }
   std::vector<ChangedCube> cubes;
   double work = 0.0;  ///< fusion work of the new map (as TreeDiff counts it)
@@ -138,7 +141,12 @@ class BodyDiff {
  private:
   enum Code : unsigned { kUnknown = 0, kFree = 1, kOccupied = 2, kInner = 3 };
 
-  static unsigned code(const std::vector<std::uint8_t>& body, std::size_t pos, unsigned i) {
+  /// Child i's code of the node record at pos (unknown, flagging the body, past its end).
+  unsigned code(const std::vector<std::uint8_t>& body, std::size_t pos, unsigned i) {
+    if (pos + 2 > body.size()) {
+      ok_ = false;
+      return kUnknown;
+    }
     return (body[pos + i / 4] >> (2 * (i % 4))) & 3U;
   }
   static octomap::OcTreeKey child_key(const octomap::OcTreeKey& key, unsigned depth, unsigned i) {
@@ -162,6 +170,8 @@ class BodyDiff {
   }
   /// Both maps have an inner node at (key, depth), at pa and pb.
   void both(std::size_t& pa, std::size_t& pb, const octomap::OcTreeKey& key, unsigned depth) {
+    if (depth > 15) ok_ = false;  // an inner node below the last level
+    if (!ok_) return;
     const std::size_t na = pa, nb = pb;
     pa += 2;
     pb += 2;
@@ -184,6 +194,8 @@ class BodyDiff {
   /// One map (`before` or not) has an inner node at (key, depth), at pos; the other is uniform
   /// (`other`: unknown, free or occupied) over it.
   void one_side(bool before, std::size_t& pos, const octomap::OcTreeKey& key, unsigned depth, unsigned other) {
+    if (depth > 15) ok_ = false;
+    if (!ok_) return;
     const std::vector<std::uint8_t>& body = before ? a_ : b_;
     const std::size_t node = pos;
     pos += 2;
@@ -206,6 +218,7 @@ class BodyDiff {
   const FuseConfig& config_;
   std::int64_t ea_[3] = {0, 0, 0};
   std::int64_t eb_[3] = {0, 0, 0};
+  bool ok_ = true;
 };
 
 /// Packed votes of source leaves finer than the target's voxels: the largest per voxel.
@@ -287,13 +300,16 @@ void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stat
 bool GlobalFusion::add_difference(const Entry& before, const Entry& after, GlobalFuseResult& stats) {
   std::vector<ChangedCube> cubes;
   double work = 0.0;
+  bool done = false;
   if (before.body && after.body) {
     BodyDiff diff(*before.body, *before.map, *after.body, *after.map, resolution_, config_);
-    diff.run();
-    cubes = std::move(diff.cubes);
-    work = diff.work;
-    stats.from_bodies = true;
-  } else {
+    if (diff.run()) {
+      cubes = std::move(diff.cubes);
+      work = diff.work;
+      stats.from_bodies = done = true;
+    }
+  }
+  if (!done) {
     TreeDiff diff(*before.map, *after.map, resolution_, config_);
     diff.run();
     cubes = std::move(diff.cubes);
