@@ -196,9 +196,15 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
       candidates.push_back(other);
     }
   }
-  std::sort(candidates.begin(), candidates.end(),
-            [](const auto& a, const auto& b) { return a->tree->size() > b->tree->size(); });
-  for (const auto& other : candidates) {
+  // Robots this one was never refused against come first (a pair refused before, with older
+  // maps, likely overlaps little: a robot aligned since then must not wait behind its retry),
+  // then the largest maps.
+  std::vector<std::pair<bool, std::shared_ptr<const RobotRecord>>> order;
+  for (const auto& other : candidates) order.emplace_back(refused_before(rec, *other, "search"), other);
+  std::stable_sort(order.begin(), order.end(), [](const auto& a, const auto& b) {
+    return a.first != b.first ? !a.first : a.second->tree->size() > b.second->tree->size();
+  });
+  for (const auto& [refused, other] : order) {
     if (hooks_.cancelled && hooks_.cancelled()) return;
     const auto target = prepared(other->robot_id, true);
     if (!target) continue;
@@ -316,6 +322,13 @@ PipelineCounters Pipeline::counters() const {
 }
 
 // ---- pairs tried -------------------------------------------------------------------------
+
+bool Pipeline::refused_before(const RobotRecord& a, const RobotRecord& b, const std::string& kind) const {
+  const auto [first_id, second_id] = ordered(a.robot_id, b.robot_id);
+  std::lock_guard<std::mutex> lock(pairs_mutex_);
+  const auto it = attempts_.find(first_id + "|" + second_id + "|" + kind);
+  return it != attempts_.end() && !it->second.accepted;
+}
 
 bool Pipeline::attempted(const RobotRecord& a, const RobotRecord& b, const std::string& kind) const {
   const auto [first_id, second_id] = ordered(a.robot_id, b.robot_id);

@@ -11,13 +11,16 @@
 #include "child_process.hpp"
 #include "dds_test_env.hpp"
 #include "fleet.hpp"
+#include "sanitizer.hpp"
 #include "mapmerge/map/crop.hpp"
 
 namespace mapmerge::test {
 
 using namespace std::chrono_literals;
 
-constexpr auto kMergeTimeout = std::chrono::seconds(120);  ///< generous: 2 shared cores
+/// Generous: 2 shared cores; doubled under AddressSanitizer, where one global search of these
+/// maps takes 20-75 s while another test's run on the other core.
+constexpr auto kMergeTimeout = std::chrono::seconds(120 * (kSanitizerSlowdown > 1 ? 2 : 1));
 constexpr double kMaxRotationDeg = 2.0;
 constexpr double kMaxTranslationM = 0.3;  ///< ~4 voxels of geb079 (8 cm), after chaining two merges
 

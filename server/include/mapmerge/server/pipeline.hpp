@@ -106,6 +106,8 @@ class Pipeline {
   void align_extra_pair(const ExtraPair& pair);
   /// A try of (a, b) of this kind ("search", "extra") with both maps as they are now is on record.
   bool attempted(const RobotRecord& a, const RobotRecord& b, const std::string& kind) const;
+  /// Whether a try of this kind between the two robots, with any of their maps, was refused last.
+  bool refused_before(const RobotRecord& a, const RobotRecord& b, const std::string& kind) const;
   void record_attempt(const RobotRecord& a, const RobotRecord& b, const std::string& kind, bool accepted,
                       const std::string& reason);
 
