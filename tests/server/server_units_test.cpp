@@ -597,21 +597,32 @@ RobotRecord received_record_of(const test::RobotMap& robot, std::uint64_t sequen
   return r;
 }
 
+/// Two robots along geb079, r2 in a turned frame and aligned to the reference r1, and r2's next,
+/// grown map; `make` turns a map into the registry's record (as given, or as received).
+struct GrownPair {
+  std::shared_ptr<const octomap::OcTree> world = test::load_data_map("geb079.bt");
+  Eigen::Matrix4d T2 = mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155);
+  test::RobotMap r1 = test::cut_robot_map(*world, "r1", box(-8, 12), Eigen::Matrix4d::Identity());
+  test::RobotMap r2 = test::cut_robot_map(*world, "r2", box(4, 24), T2);
+  test::RobotMap r2_grown = test::cut_robot_map(*world, "r2", box(4, 30), T2);
+
+  template <class Make>
+  void put_first_maps(Registry& registry, Make make) const {
+    registry.claim_reference("r1");
+    registry.put_map(make(r1, 1));
+    registry.put_map(make(r2, 1));
+    registry.put_edge(Edge{"r1", "r2", T2.inverse(), 0.02});
+  }
+};
+
 TEST(GlobalMapBuilder, AReceivedGrownMapIsDiffedOnItsPayloadBytesAndEqualsAFreshBuild) {
-  const auto world = test::load_data_map("geb079.bt");
-  const Eigen::Matrix4d T2 = mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155);
-  const auto r1 = test::cut_robot_map(*world, "r1", box(-8, 12), Eigen::Matrix4d::Identity());
-  const auto r2 = test::cut_robot_map(*world, "r2", box(4, 24), T2);
-  const auto r2_grown = test::cut_robot_map(*world, "r2", box(4, 30), T2);
+  const GrownPair pair;
   ServerConfig config;
   Registry registry;
-  registry.claim_reference("r1");
-  registry.put_map(received_record_of(r1, 1));
-  registry.put_map(received_record_of(r2, 1));
-  registry.put_edge(Edge{"r1", "r2", T2.inverse(), 0.02});
+  pair.put_first_maps(registry, received_record_of);
   GlobalMapBuilder builder(config);
   ASSERT_TRUE(builder.build(registry, 1));
-  registry.put_map(received_record_of(r2_grown, 2));
+  registry.put_map(received_record_of(pair.r2_grown, 2));
   const auto second = builder.build(registry, 2);
   ASSERT_TRUE(second);
   EXPECT_EQ(builder.last_stages().incremental, 1u);
@@ -622,24 +633,17 @@ TEST(GlobalMapBuilder, AReceivedGrownMapIsDiffedOnItsPayloadBytesAndEqualsAFresh
 }
 
 TEST(GlobalMapBuilder, AGrownMapIsFusedByItsDifferenceAndEqualsAFreshBuild) {
-  const auto world = test::load_data_map("geb079.bt");
-  const Eigen::Matrix4d T2 = mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155);
-  const auto r1 = test::cut_robot_map(*world, "r1", box(-8, 12), Eigen::Matrix4d::Identity());
-  const auto r2 = test::cut_robot_map(*world, "r2", box(4, 24), T2);
-  const auto r2_grown = test::cut_robot_map(*world, "r2", box(4, 30), T2);
+  const GrownPair pair;
   ServerConfig config;
   Registry registry;
-  registry.claim_reference("r1");
-  registry.put_map(record_of(r1, 1));
-  registry.put_map(record_of(r2, 1));
-  registry.put_edge(Edge{"r1", "r2", T2.inverse(), 0.02});
+  pair.put_first_maps(registry, record_of);
   GlobalMapBuilder builder(config);
   const auto first = builder.build(registry, 1);
   ASSERT_TRUE(first);
   EXPECT_EQ(first->contributors.size(), 2u);
   EXPECT_EQ(builder.last_stages().updated, 2u);
 
-  registry.put_map(record_of(r2_grown, 2));
+  registry.put_map(record_of(pair.r2_grown, 2));
   const auto second = builder.build(registry, 2);
   ASSERT_TRUE(second);
   EXPECT_EQ(builder.last_stages().updated, 1u);
