@@ -61,8 +61,8 @@ Counts check_direction(const PreparedMap::Impl& from, const PreparedMap::Impl& t
           Point p;
           p.getVector4fMap() = T * (*from.full)[s * step].getVector4fMap();
           ++acc.checked;
-          if (to.full_tree->nearestKSearch(p, 1, idx, d2) < 1) continue;
-          const double d = std::sqrt(static_cast<double>(d2[0]));
+          const bool near = to.full_tree->radiusSearch(p, d_conflict, idx, d2, 1) >= 1;
+          const double d = near ? std::sqrt(static_cast<double>(d2[0])) : std::numeric_limits<double>::infinity();
           if (d <= d_th) {
             ++acc.inliers;
             acc.sum += d;
@@ -225,7 +225,7 @@ Cloud overlap_sample(const Cloud& full, const pcl::KdTreeFLANN<Point>& tree, con
   for (std::size_t i = 0; i < full.size(); i += probe_step) {
     Point p;
     p.getVector4fMap() = T * full[i].getVector4fMap();
-    if (tree.nearestKSearch(p, 1, idx, d2) == 1 && d2[0] <= dmax2) kept.push_back(full[i]);
+    if (tree.radiusSearch(p, dmax, idx, d2, 1) == 1 && d2[0] <= dmax2) kept.push_back(full[i]);
   }
   if (kept.size() <= max_points) return kept;
   Cloud out;

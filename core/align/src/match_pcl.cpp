@@ -1,7 +1,9 @@
 // Stage 6: descriptor correspondences and global hypotheses (PCL translation unit 2 of 3).
 #include <algorithm>
+#include <array>
 #include <cstdint>
 #include <random>
+#include <unordered_set>
 
 #include <Eigen/Geometry>
 #include <pcl/recognition/cg/geometric_consistency.h>
@@ -48,6 +50,18 @@ std::vector<Match> match_features(const pcl::PointCloud<Feature>& src_f,
 struct Pairs {
   std::vector<Eigen::Vector3d> src, tgt;
   std::vector<int> src_kp, tgt_kp;  ///< keypoint indices
+  /// The same positions, one array per coordinate: the consensus count runs over all pairs for
+  /// every sampled triple, and this layout lets the compiler vectorise it.
+  std::array<std::vector<double>, 3> s, t;
+
+  void add(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
+    src.push_back(a);
+    tgt.push_back(b);
+    for (int k = 0; k < 3; ++k) {
+      s[k].push_back(a[k]);
+      t[k].push_back(b[k]);
+    }
+  }
 };
 
 Pairs pairs_of(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
@@ -57,8 +71,8 @@ Pairs pairs_of(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
   Pairs p;
   for (const Match& m : matches) {
     if (!in_subset[static_cast<std::size_t>(m.source)]) continue;
-    p.src.push_back((*source.keypoints)[m.source].getVector3fMap().cast<double>());
-    p.tgt.push_back((*target.keypoints)[m.target].getVector3fMap().cast<double>());
+    p.add((*source.keypoints)[m.source].getVector3fMap().cast<double>(),
+          (*target.keypoints)[m.target].getVector3fMap().cast<double>());
     p.src_kp.push_back(m.source);
     p.tgt_kp.push_back(m.target);
   }
@@ -75,19 +89,68 @@ Eigen::Matrix4d fit(const Pairs& p, const std::vector<int>& which) {
   return Eigen::umeyama(a, b, false);
 }
 
-std::vector<int> consensus_of(const Pairs& p, const Eigen::Matrix4d& T, double eps) {
-  const Eigen::Matrix3d R = T.topLeftCorner<3, 3>();
-  const Eigen::Vector3d t = T.topRightCorner<3, 1>();
-  std::vector<int> inliers;
+/// Calls f(i, squared residual) for every pair under T (one pass over the coordinate arrays).
+template <class F>
+void for_each_residual(const Pairs& p, const Eigen::Matrix4d& T, F&& f) {
+  const std::size_t n = p.s[0].size();
+  const double *sx = p.s[0].data(), *sy = p.s[1].data(), *sz = p.s[2].data();
+  const double *tx = p.t[0].data(), *ty = p.t[1].data(), *tz = p.t[2].data();
+  const double r00 = T(0, 0), r01 = T(0, 1), r02 = T(0, 2), r10 = T(1, 0), r11 = T(1, 1), r12 = T(1, 2);
+  const double r20 = T(2, 0), r21 = T(2, 1), r22 = T(2, 2), t0 = T(0, 3), t1 = T(1, 3), t2 = T(2, 3);
+  for (std::size_t i = 0; i < n; ++i) {
+    const double dx = r00 * sx[i] + r01 * sy[i] + r02 * sz[i] + t0 - tx[i];
+    const double dy = r10 * sx[i] + r11 * sy[i] + r12 * sz[i] + t1 - ty[i];
+    const double dz = r20 * sx[i] + r21 * sy[i] + r22 * sz[i] + t2 - tz[i];
+    f(i, dx * dx + dy * dy + dz * dz);
+  }
+}
+
+/// How many pairs T maps within eps of their partner: consensus_of(p, T, eps).size(), without
+/// building the list.
+std::size_t consensus_count(const Pairs& p, const Eigen::Matrix4d& T, double eps) {
   const double eps2 = eps * eps;
-  for (std::size_t i = 0; i < p.src.size(); ++i)
-    if ((R * p.src[i] + t - p.tgt[i]).squaredNorm() < eps2) inliers.push_back(static_cast<int>(i));
+  double count = 0.0;  // a double sum (exact below 2^53) is what GCC vectorises here
+  for_each_residual(p, T, [&](std::size_t, double d2) { count += d2 < eps2 ? 1.0 : 0.0; });
+  return static_cast<std::size_t>(count);
+}
+
+/// The pairs T maps within eps of their partner, in index order.
+std::vector<int> consensus_of(const Pairs& p, const Eigen::Matrix4d& T, double eps) {
+  const double eps2 = eps * eps;
+  std::vector<int> inliers(p.src.size());
+  std::size_t k = 0;
+  for_each_residual(p, T, [&](std::size_t i, double d2) {
+    inliers[k] = static_cast<int>(i);  // written always, kept when within eps (no branch)
+    k += d2 < eps2 ? 1 : 0;
+  });
+  inliers.resize(k);
   return inliers;
 }
+
+/// Consensus sets already fitted: sampled triples of one correct transform mostly give the
+/// same set, and the same set gives the same least-squares transform and score again.
+class SeenSets {
+ public:
+  /// True the first time `set` is offered.
+  bool first(const std::vector<int>& set) { return seen_.insert(set).second; }
+
+ private:
+  struct Hash {
+    std::size_t operator()(const std::vector<int>& v) const {
+      std::uint64_t h = 1469598103934665603ULL;  // FNV-1a over the indices
+      for (int i : v) h = (h ^ static_cast<std::uint32_t>(i)) * 1099511628211ULL;
+      return static_cast<std::size_t>(h);
+    }
+  };
+  std::unordered_set<std::vector<int>, Hash> seen_;
+};
 
 /// Keeps the `max` best distinct hypotheses (by consensus).
 void keep_best(std::vector<Hypothesis>& best, Hypothesis h, std::size_t max, double rot,
                double trans) {
+  // A full list whose every entry has more consensus keeps none of h: it can replace no
+  // duplicate of itself and would be the one dropped.
+  if (best.size() >= max && !best.empty() && h.consensus < best.back().consensus) return;
   for (auto& b : best) {
     if (same_pose(b.T_target_source, h.T_target_source, rot, trans)) {
       if (h.consensus > b.consensus) b = h;
@@ -108,7 +171,7 @@ void keep_best(std::vector<Hypothesis>& best, Hypothesis h, std::size_t max, dou
 /// correspondences are correct, where uniform sampling rarely draws three of them.
 template <class Keep>
 void seed_from_common_partners(const Pairs& p, const std::vector<std::vector<int>>& compatible,
-                               double tol, const MatchConfig& c, Keep&& keep) {
+                               double tol, const MatchConfig& c, SeenSets& seen, Keep&& keep) {
   const std::size_t m = p.src.size(), words = (m + 63) / 64;
   if (c.seed_pairs == 0) return;
   std::vector<std::uint64_t> bits(m * words, 0);
@@ -136,10 +199,10 @@ void seed_from_common_partners(const Pairs& p, const std::vector<std::vector<int
       while (both != 0) {
         const int k = static_cast<int>(w * 64) + __builtin_ctzll(both);
         both &= both - 1;
-        std::vector<int> inliers = consensus_of(p, fit(p, {edges[e].i, edges[e].j, k}), tol);
-        if (inliers.size() < c.min_consensus) continue;
+        const std::vector<int> inliers = consensus_of(p, fit(p, {edges[e].i, edges[e].j, k}), tol);
+        if (inliers.size() < c.min_consensus || !seen.first(inliers)) continue;
         const Eigen::Matrix4d T_ls = fit(p, inliers);
-        keep(T_ls, consensus_of(p, T_ls, tol).size());
+        keep(T_ls, consensus_count(p, T_ls, tol));
       }
     }
   }
@@ -170,7 +233,8 @@ std::vector<Hypothesis> ransac(const Pairs& p, const AlignConfig& cfg, double re
   std::vector<Hypothesis> best;
   const double rot = cfg.validate.distinct_rotation_deg;
   const double trans = cfg.validate.distinct_translation * res;
-  seed_from_common_partners(p, compatible, tol, c, [&](const Eigen::Matrix4d& T, std::size_t n) {
+  SeenSets seen;
+  seed_from_common_partners(p, compatible, tol, c, seen, [&](const Eigen::Matrix4d& T, std::size_t n) {
     keep_best(best, {T, n, -1}, c.max_hypotheses, rot, trans);
   });
   std::mt19937 rng(seed);
@@ -184,12 +248,10 @@ std::vector<Hypothesis> ransac(const Pairs& p, const AlignConfig& cfg, double re
     if (b == cc) continue;
     const auto& nb = compatible[static_cast<std::size_t>(b)];
     if (!std::binary_search(nb.begin(), nb.end(), cc)) continue;  // lists are sorted
-    const Eigen::Matrix4d T = fit(p, {static_cast<int>(a), b, cc});
-    std::vector<int> inliers = consensus_of(p, T, tol);
-    if (inliers.size() < c.min_consensus) continue;
+    const std::vector<int> inliers = consensus_of(p, fit(p, {static_cast<int>(a), b, cc}), tol);
+    if (inliers.size() < c.min_consensus || !seen.first(inliers)) continue;
     const Eigen::Matrix4d T_ls = fit(p, inliers);  // least squares over the consensus
-    inliers = consensus_of(p, T_ls, tol);
-    keep_best(best, {T_ls, inliers.size(), -1}, c.max_hypotheses, rot, trans);
+    keep_best(best, {T_ls, consensus_count(p, T_ls, tol), -1}, c.max_hypotheses, rot, trans);
   }
   return best;
 }
