@@ -52,6 +52,8 @@ Counts check_direction(const PreparedMap::Impl& from, const PreparedMap::Impl& t
   const std::size_t n = from.full->size();
   const std::size_t step = std::max<std::size_t>(1, n / std::max<std::size_t>(1, samples));
   const double d_th = c.d_th * res, d_conflict = c.conflict_distance * res;
+  // Nothing further than both distances changes the counts: the tree need not look beyond.
+  const double reach = std::max(d_th, d_conflict);
   return tbb::parallel_reduce(
       tbb::blocked_range<std::size_t>(0, (n + step - 1) / step, 256), Counts{},
       [&](const tbb::blocked_range<std::size_t>& r, Counts acc) {
@@ -61,7 +63,7 @@ Counts check_direction(const PreparedMap::Impl& from, const PreparedMap::Impl& t
           Point p;
           p.getVector4fMap() = T * (*from.full)[s * step].getVector4fMap();
           ++acc.checked;
-          const bool near = to.full_tree->radiusSearch(p, d_conflict, idx, d2, 1) >= 1;
+          const bool near = to.full_tree->radiusSearch(p, reach, idx, d2, 1) >= 1;
           const double d = near ? std::sqrt(static_cast<double>(d2[0])) : std::numeric_limits<double>::infinity();
           if (d <= d_th) {
             ++acc.inliers;
