@@ -62,9 +62,25 @@ void Scheduler::worker() {
   }
 }
 
+std::string Scheduler::next_locked() {
+  // A waiting map goes before retries and refinements (a known robot's update is on the
+  // fleet's latency path; a refinement of its previous map is not), but a retry passed over
+  // kMaxSkips times goes first, so no robot waits forever behind a stream of maps.
+  auto pick = ready_.begin();
+  if (slots_[*pick].skipped < kMaxSkips) {
+    const auto with_map = std::find_if(ready_.begin(), ready_.end(),
+                                       [this](const std::string& r) { return slots_[r].map.has_value(); });
+    if (with_map != ready_.end()) pick = with_map;
+  }
+  for (auto it = ready_.begin(); it != pick; ++it) ++slots_[*it].skipped;
+  std::string robot = *pick;
+  ready_.erase(pick);
+  slots_[robot].skipped = 0;
+  return robot;
+}
+
 void Scheduler::run_robot(std::unique_lock<std::mutex>& lock) {
-  const std::string robot = ready_.front();
-  ready_.pop_front();
+  const std::string robot = next_locked();
   stats_.queued = ready_.size();
   Slot& slot = slots_[robot];
   std::optional<MapSample> map = std::move(slot.map);

@@ -321,6 +321,43 @@ TEST(Scheduler, CoalescesAFastPublisherAndNeverRunsARobotTwiceAtOnce) {
   EXPECT_LE(st.max_queued, 1u);               // the queue holds robots, not updates
 }
 
+TEST(Scheduler, AWaitingMapGoesBeforeRetriesButARetryWaitsAtMostFourTurns) {
+  std::mutex m;
+  std::condition_variable cv;
+  bool release = false, started = false;
+  std::vector<std::string> order;
+  Scheduler s(1, [&](const std::string& robot, std::optional<MapSample> map, bool retry) {
+    std::unique_lock<std::mutex> lock(m);
+    started = true;
+    cv.notify_all();
+    cv.wait(lock, [&] { return release; });
+    if (robot != "busy") order.push_back(robot + (map ? "+map" : "") + (retry ? "+retry" : ""));
+  });
+  auto map_of = [](const std::string& robot) {
+    MapSample sample;
+    sample.robot_id = robot;
+    return sample;
+  };
+  s.submit(map_of("busy"));  // holds the only thread while the queue fills
+  {
+    std::unique_lock<std::mutex> lock(m);
+    ASSERT_TRUE(cv.wait_for(lock, 10s, [&] { return started; }));
+  }
+  s.retry("search");  // e.g. a global search or a refinement: no new map
+  for (int i = 1; i <= 6; ++i) s.submit(map_of("m" + std::to_string(i)));
+  {
+    std::lock_guard<std::mutex> lock(m);
+    release = true;
+  }
+  cv.notify_all();
+  const auto deadline = std::chrono::steady_clock::now() + 30s;
+  while (!s.idle() && std::chrono::steady_clock::now() < deadline) std::this_thread::sleep_for(10ms);
+  ASSERT_TRUE(s.idle());
+  const std::vector<std::string> expected{"m1+map", "m2+map", "m3+map", "m4+map",
+                                          "search+retry", "m5+map", "m6+map"};
+  EXPECT_EQ(order, expected);
+}
+
 TEST(Scheduler, IdleWorkRunsOnSpareThreadsAndNeverStarvesARobot) {
   std::mutex m;
   std::condition_variable cv;

@@ -4,6 +4,9 @@
 /// is queued at most once and processed by at most one thread at a time, so the queue is
 /// bounded by the number of robots whatever the publishers' rates.
 ///
+/// Robots with a waiting map are taken before robots waiting only for a retry (a global search
+/// or a refinement), up to kMaxSkips times in a row for any one of those.
+///
 /// Idle work (e.g. extra pairwise alignments that give the pose graph cycles) runs only on spare
 /// capacity: a worker asks for it only when no robot is waiting, and at most `max_idle_jobs`
 /// idle jobs run at once, so with two or more threads one is always free for robot turns.
@@ -68,8 +71,11 @@ class Scheduler {
     bool retry = false;
     bool busy = false;
     bool queued = false;
+    int skipped = 0;  ///< times a robot with a waiting map was taken before this one
   };
+  static constexpr int kMaxSkips = 4;
   void enqueue_locked(const std::string& robot, Slot& slot);
+  std::string next_locked();  ///< removes and returns the robot to run next (ready_ not empty)
   void worker();
   bool idle_allowed_locked() const;
   void run_robot(std::unique_lock<std::mutex>& lock);
