@@ -3,6 +3,9 @@
 // Exit codes: 0 clean shutdown (SIGINT/SIGTERM); 1 runtime failure (DDS entities, unexpected
 // error); 2 bad command line or configuration; 3 the state store cannot be opened or read.
 
+#include <unistd.h>
+
+#include <atomic>
 #include <csignal>
 #include <cstdlib>
 #include <iostream>
@@ -46,12 +49,31 @@ ServerConfig make_config(const Flags& f) {
   return c;
 }
 
-/// Blocks SIGINT/SIGTERM in every thread and waits for them on one thread, which stops the server.
+std::atomic<bool> g_stop_signal{false};
+
+/// Runs only if SIGINT/SIGTERM reaches a thread that does not block them (one started before
+/// main blocked them, or by a library that changed its mask): the process must still stop
+/// cleanly, never die of the default action. Async-signal-safe: a flag and write(2).
+extern "C" void on_stop_signal(int) {
+  g_stop_signal = true;
+  static const char kMsg[] = "mapmerge-server: stop signal taken by a thread that does not block it\n";
+  const ssize_t ignored = ::write(STDERR_FILENO, kMsg, sizeof kMsg - 1);
+  (void)ignored;
+}
+
+/// SIGINT/SIGTERM are blocked in every thread and waited for on one thread, which stops the
+/// server; the handler above is the fallback (the wait also wakes every 100 ms to see its flag).
 std::thread signal_thread(mapmerge::server::Server& server, sigset_t set) {
   return std::thread([&server, set] {
-    int sig = 0;
-    sigwait(&set, &sig);
-    if (sig != SIGUSR1) spdlog::info("signal {} received", sig);
+    const timespec period{0, 100'000'000};
+    while (true) {
+      const int sig = sigtimedwait(&set, nullptr, &period);
+      if (sig == SIGUSR1) break;  // run() ended otherwise: nothing to stop
+      if (sig > 0 || g_stop_signal) {
+        spdlog::info("signal {} received", sig > 0 ? sig : SIGTERM);
+        break;
+      }
+    }
     server.stop();
   });
 }
@@ -83,6 +105,12 @@ int main(int argc, char** argv) {
   sigaddset(&set, SIGTERM);
   sigaddset(&set, SIGUSR1);
   pthread_sigmask(SIG_BLOCK, &set, nullptr);  // before any thread starts: all inherit it
+  struct sigaction stop_action {};
+  stop_action.sa_handler = on_stop_signal;
+  sigemptyset(&stop_action.sa_mask);
+  stop_action.sa_flags = SA_RESTART;
+  sigaction(SIGINT, &stop_action, nullptr);
+  sigaction(SIGTERM, &stop_action, nullptr);
   CLI::App app{"mapmerge-server: merges a robot fleet's OctoMaps into one global map over DDS.\n"
                "Exit codes: 0 clean shutdown, 1 runtime error, 2 usage/config error, 3 state store error."};
   Flags f;
