@@ -58,6 +58,35 @@ TEST_P(RealMap, BinaryRoundTripIsByteIdentical) {
   EXPECT_EQ(encode_map(*decoded.tree, Encoding::kOctomapBt), bytes);
 }
 
+TEST_P(RealMap, DecodedTreeEqualsOctomapsOwnReaderNodeForNode) {
+  const auto bytes = file_bytes(GetParam());
+  const DecodeResult decoded = decode_bt(bytes);
+  ASSERT_TRUE(decoded.ok()) << decoded.reason;
+  octomap::OcTree reference(decoded.tree->getResolution());
+  std::istringstream in(as_string(bytes).substr(body_offset(bytes)));
+  reference.readBinaryData(in);
+  ASSERT_EQ(decoded.tree->size(), reference.size());
+  ASSERT_EQ(decoded.tree->size(), reference.calcNumNodes());
+  // Every node, inner ones included, in the same order with the same key, depth and value.
+  auto a = decoded.tree->begin_tree(), b = reference.begin_tree();
+  std::size_t nodes = 0;
+  for (; a != decoded.tree->end_tree() && b != reference.end_tree(); ++a, ++b, ++nodes) {
+    ASSERT_EQ(a.getKey(), b.getKey()) << "node " << nodes;
+    ASSERT_EQ(a.getDepth(), b.getDepth()) << "node " << nodes;
+    ASSERT_EQ(a.isLeaf(), b.isLeaf()) << "node " << nodes;
+    ASSERT_EQ(a->getLogOdds(), b->getLogOdds()) << "node " << nodes;
+  }
+  EXPECT_TRUE(a == decoded.tree->end_tree() && b == reference.end_tree());
+  EXPECT_EQ(nodes, reference.size());
+  auto bounds = [](const octomap::OcTree& t) {
+    std::vector<double> v(6);
+    t.getMetricMin(v[0], v[1], v[2]);
+    t.getMetricMax(v[3], v[4], v[5]);
+    return v;
+  };
+  EXPECT_EQ(bounds(*decoded.tree), bounds(reference));
+}
+
 TEST_P(RealMap, ZstdRoundTripIsByteIdenticalAndSmaller) {
   const auto bytes = file_bytes(GetParam());
   const auto tree = decode_bt(bytes).tree;
