@@ -7,6 +7,7 @@
 
 #include <atomic>
 #include <csignal>
+#include <cstdio>
 #include <cstdlib>
 #include <iostream>
 #include <thread>
@@ -138,6 +139,9 @@ int main(int argc, char** argv) {
     return e.get_exit_code() == 0 ? kOk : kUsageError;
   }
 
+  // One write per log line: a server that is killed (or dies) leaves its log complete up to
+  // its last line, also when stdout is a pipe or a file (fully buffered by default).
+  std::setvbuf(stdout, nullptr, _IOLBF, 0);
   spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e %^%l%$ %v");
   spdlog::set_level(spdlog::level::from_str(f.log_level));
   ServerConfig config;
