@@ -147,7 +147,7 @@ class BodyDiff {
       ok_ = false;
       return kUnknown;
     }
-    return (body[pos + i / 4] >> (2 * (i % 4))) & 3U;
+    return detail::binary_child_code(body.data() + pos, i);
   }
   static octomap::OcTreeKey child_key(const octomap::OcTreeKey& key, unsigned depth, unsigned i) {
     octomap::OcTreeKey k;

@@ -50,12 +50,12 @@ class BinaryBodyTree : public octomap::OcTree {
       next_ = end_;
       return;
     }
-    const unsigned first = *next_++, second = *next_++;
+    const std::uint8_t* record = next_;
+    next_ += 2;
     node->setLogOdds(clamping_thres_max);  // as OctoMap: inner nodes start occupied
     unsigned inner = 0;
     for (unsigned i = 0; i < 8; ++i) {
-      // Two bits a child, lowest first: 01 free leaf, 10 occupied leaf, 11 inner, 00 none.
-      const unsigned bits = ((i < 4 ? first : second) >> (2 * (i % 4))) & 3U;
+      const unsigned bits = detail::binary_child_code(record, i);  // 1 free, 2 occupied, 3 inner
       if (bits == 0) continue;
       octomap::OcTreeNode* child = createNodeChild(node, i);
       child->setLogOdds(bits == 1 ? clamping_thres_min : clamping_thres_max);
@@ -123,17 +123,18 @@ DecodeResult decode_body(double res, bool binary, const std::uint8_t* body, std:
     result.empty = true;  // a root without children carries no map information
     return result;
   }
-  ByteStreamBuf buf(body, size);
-  std::istream in(&buf);
+  bool read_ok = true;
   if (binary) {
     result.tree = std::make_unique<BinaryBodyTree>(res, body, size);
     result.binary_body = std::make_shared<const std::vector<std::uint8_t>>(body, body + size);
   } else {
+    ByteStreamBuf buf(body, size);
+    std::istream in(&buf);
     result.tree = std::make_unique<octomap::OcTree>(res);
-    result.tree->readData(in);
+    read_ok = static_cast<bool>(result.tree->readData(in));
   }
   result.num_nodes = result.tree->size();
-  if (!in || result.num_nodes != scan.num_nodes) {
+  if (!read_ok || result.num_nodes != scan.num_nodes) {
     return rejected(DecodeError::kMalformedTree, "OctoMap read " +
                                                      std::to_string(result.num_nodes) +
                                                      " nodes where the pre-pass counted " +

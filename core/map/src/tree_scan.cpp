@@ -72,14 +72,13 @@ TreeScan walk(const std::uint8_t* data, std::size_t size, std::size_t max_nodes,
 }  // namespace
 
 TreeScan scan_binary_body(const std::uint8_t* data, std::size_t size, std::size_t max_nodes) {
-  // Child i's code is bits (2i, 2i+1) of byte i/4: 0 unknown, 1 free leaf, 2 occupied leaf,
-  // 3 inner node whose own two bytes follow (depth-first, in child order).
+  // Child codes: binary_child_code().
   auto read_node = [](const std::uint8_t* p, int depth, std::size_t pos, std::uint32_t& children,
                       std::uint32_t& inner, TreeScan& scan) {
     const std::uint64_t child_voxels = std::uint64_t{1} << (3 * (kTreeDepth - 1 - depth));
     const double child_width = static_cast<double>(1U << (kTreeDepth - 1 - depth));
     for (int i = 0; i < 8; ++i) {
-      const unsigned code = (p[i / 4] >> (2 * (i % 4))) & 3U;
+      const unsigned code = binary_child_code(p, static_cast<unsigned>(i));
       children += code != 0;
       inner += code == 3;
       if (code == 2) scan.occupied_voxels += child_voxels;  // pruned leaves count in full

@@ -18,6 +18,13 @@ inline double leaf_fusion_work(double n) {
   return n <= 4 ? (n + 1) * (n + 1) * (n + 1) : 27 * (n + 1) * (n + 1);
 }
 
+/// Child i's code in a binary body's node record (the node's 2 bytes at `record`): bits
+/// (2i, 2i+1) of byte i/4; 0 unknown, 1 free leaf, 2 occupied leaf, 3 inner node (whose own
+/// record follows, depth-first, in child order).
+inline unsigned binary_child_code(const std::uint8_t* record, unsigned i) {
+  return (record[i / 4] >> (2 * (i % 4))) & 3U;
+}
+
 /// What a scan found: the node count of a well-formed body, or why it is not one.
 struct TreeScan {
   DecodeError error = DecodeError::kNone;
