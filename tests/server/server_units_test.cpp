@@ -285,6 +285,22 @@ TEST(PoseGraph, ComposesTransformsAlongTheBestPath) {
   EXPECT_EQ(poses.at("r3").hops, 2);
 }
 
+/// Sets `flag` under `m` and wakes every job waiting for it on `cv`.
+void open_gate(std::mutex& m, std::condition_variable& cv, bool& flag) {
+  {
+    std::lock_guard<std::mutex> lock(m);
+    flag = true;
+  }
+  cv.notify_all();
+}
+
+/// Waits up to 30 s for `s` to have nothing queued or running.
+bool wait_until_idle(const Scheduler& s) {
+  const auto deadline = std::chrono::steady_clock::now() + 30s;
+  while (!s.idle() && std::chrono::steady_clock::now() < deadline) std::this_thread::sleep_for(10ms);
+  return s.idle();
+}
+
 TEST(Scheduler, CoalescesAFastPublisherAndNeverRunsARobotTwiceAtOnce) {
   std::mutex m;
   std::condition_variable cv;
@@ -305,14 +321,8 @@ TEST(Scheduler, CoalescesAFastPublisherAndNeverRunsARobotTwiceAtOnce) {
     sample.sequence = seq;
     s.submit(sample);
   }
-  {
-    std::lock_guard<std::mutex> lock(m);
-    release = true;
-  }
-  cv.notify_all();
-  const auto deadline = std::chrono::steady_clock::now() + 30s;
-  while (!s.idle() && std::chrono::steady_clock::now() < deadline) std::this_thread::sleep_for(10ms);
-  ASSERT_TRUE(s.idle());
+  open_gate(m, cv, release);
+  ASSERT_TRUE(wait_until_idle(s));
   const SchedulerStats st = s.stats();
   EXPECT_EQ(max_running.load(), 1);           // one robot: one job at a time
   EXPECT_LE(processed.size(), 2u);            // the first (already running) and the latest
@@ -345,14 +355,8 @@ TEST(Scheduler, AWaitingMapGoesBeforeRetriesButARetryWaitsAtMostFourTurns) {
   }
   s.retry("search");  // e.g. a global search or a refinement: no new map
   for (int i = 1; i <= 6; ++i) s.submit(map_of("m" + std::to_string(i)));
-  {
-    std::lock_guard<std::mutex> lock(m);
-    release = true;
-  }
-  cv.notify_all();
-  const auto deadline = std::chrono::steady_clock::now() + 30s;
-  while (!s.idle() && std::chrono::steady_clock::now() < deadline) std::this_thread::sleep_for(10ms);
-  ASSERT_TRUE(s.idle());
+  open_gate(m, cv, release);
+  ASSERT_TRUE(wait_until_idle(s));
   const std::vector<std::string> expected{"m1+map", "m2+map", "m3+map", "m4+map",
                                           "search+retry", "m5+map", "m6+map"};
   EXPECT_EQ(order, expected);
@@ -392,9 +396,7 @@ TEST(Scheduler, IdleWorkRunsOnSpareThreadsAndNeverStarvesARobot) {
   MapSample sample;
   sample.robot_id = "r1";
   s.submit(sample);  // must run on the other thread while the idle job holds its own
-  const auto deadline = std::chrono::steady_clock::now() + 30s;
-  while (!s.idle() && std::chrono::steady_clock::now() < deadline) std::this_thread::sleep_for(10ms);
-  ASSERT_TRUE(s.idle());
+  ASSERT_TRUE(wait_until_idle(s));
   EXPECT_TRUE(robot_ran_during_idle);
   EXPECT_EQ(idle_max, 1);  // two threads: at most one idle job at a time
   EXPECT_EQ(s.stats().idle_jobs_run, 3u);  // asked again after each job until none is left
