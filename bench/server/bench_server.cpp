@@ -39,6 +39,7 @@ struct Result {
   int n = 0, aligned = 0;
   double first_global_s = 0, all_aligned_s = -1, map_kb_per_robot = 0;
   std::vector<double> incremental_ms;
+  std::vector<double> encode_ms, arrival_ms, receiver_decode_ms;  ///< parts of incremental_ms
   double cpu_s = 0, peak_rss_mb = 0, max_rot_deg = 0, max_trans_m = 0;
   std::map<std::string, std::vector<double>> stages;  ///< server-side stage -> ms per incremental update
 };
@@ -145,9 +146,17 @@ void incremental(const Options& o, Result& r, mt::FleetListener& op, const std::
     const std::uint64_t seq = 2 + static_cast<std::uint64_t>(u);
     const bool grown = (u / known.size()) % 2 == 0;
     const auto t0 = Clock::now();
-    pubs[i]->publish(grown ? *fleet[i].grown.tree : *fleet[i].map.tree, "s1", seq);
+    const auto bytes = mapmerge::encode_map(grown ? *fleet[i].grown.tree : *fleet[i].map.tree,
+                                            mapmerge::Encoding::kOctomapBt);
+    const auto t_encoded = Clock::now();
+    pubs[i]->publish_bytes(bytes, robots[i].id, "s1", seq);
     if (op.wait_for([&] { return op.global().contributor_sequence[robots[i].id] == seq; }, std::chrono::seconds(120))) {
-      r.incremental_ms.push_back(secs(t0) * 1000.0);
+      const auto g = op.global();
+      const auto ms = [](Clock::duration d) { return std::chrono::duration<double, std::milli>(d).count(); };
+      r.incremental_ms.push_back(ms(g.received - t0));
+      r.encode_ms.push_back(ms(t_encoded - t0));
+      r.arrival_ms.push_back(ms(g.arrived - t_encoded));
+      r.receiver_decode_ms.push_back(ms(g.received - g.arrived));
     }
   }
 }
@@ -218,6 +227,12 @@ int main(int argc, char** argv) {
   std::printf("\nserver stages of incremental updates, median ms (map decode/store: every accepted map)\n");
   for (const Result& r : results) {
     std::printf("N=%2d:", r.n);
+    const auto median = [](std::vector<double> v) {
+      std::sort(v.begin(), v.end());
+      return v.empty() ? -1.0 : v[v.size() / 2];
+    };
+    std::printf(" [outside the server: robot encode %.1f; publish -> global arrived %.1f; receiver decode %.1f]",
+                median(r.encode_ms), median(r.arrival_ms), median(r.receiver_decode_ms));
     for (auto [stage, v] : r.stages) {
       std::sort(v.begin(), v.end());
       std::printf(" %s %.1f;", stage.c_str(), v.empty() ? -1.0 : v[v.size() / 2]);

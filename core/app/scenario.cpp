@@ -4,6 +4,7 @@
 #include <cmath>
 #include <stdexcept>
 
+#include "mapmerge/map/bounds.hpp"
 #include "mapmerge/map/crop.hpp"
 
 namespace mapmerge::app {
@@ -11,9 +12,9 @@ namespace mapmerge::app {
 Scenario make_scenario(const octomap::OcTree& world, int n, double min_overlap, double max_overlap,
                        double max_tilt_deg, double max_offset, std::mt19937& rng) {
   if (n < 2) throw std::invalid_argument("a scenario needs at least two robots");
-  double x0, y0, z0, x1, y1, z1;
-  world.getMetricMin(x0, y0, z0);
-  world.getMetricMax(x1, y1, z1);
+  const Eigen::AlignedBox3d bounds = leaf_bounds(world);
+  const double x0 = bounds.min().x(), y0 = bounds.min().y(), z0 = bounds.min().z();
+  const double x1 = bounds.max().x(), y1 = bounds.max().y(), z1 = bounds.max().z();
   const bool along_x = (x1 - x0) >= (y1 - y0);
   const double lo = along_x ? x0 : y0;
   const double extent = along_x ? x1 - x0 : y1 - y0;

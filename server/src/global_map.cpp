@@ -6,6 +6,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include "mapmerge/map/bounds.hpp"
 #include "mapmerge/server/merge_ops.hpp"
 
 namespace mapmerge::server {
@@ -91,10 +92,7 @@ const Eigen::AlignedBox3d& GlobalMapBuilder::extent(const std::string& robot,
                                                     const std::shared_ptr<const octomap::OcTree>& tree) {
   auto& [map, box] = extents_[robot];
   if (map.lock() != tree) {
-    double x0, y0, z0, x1, y1, z1;
-    tree->getMetricMin(x0, y0, z0);
-    tree->getMetricMax(x1, y1, z1);
-    box = Eigen::AlignedBox3d(Eigen::Vector3d(x0, y0, z0), Eigen::Vector3d(x1, y1, z1));
+    box = leaf_bounds(*tree);
     map = tree;
   }
   return box;

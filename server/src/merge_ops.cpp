@@ -7,27 +7,17 @@
 #include <Eigen/Geometry>
 
 #include "mapmerge/graph/information.hpp"
+#include "mapmerge/map/bounds.hpp"
 #include "mapmerge/map/fusion.hpp"
 #include "mapmerge/map/map_io.hpp"
 #include "mapmerge/wire/topics.hpp"
 
 namespace mapmerge::server {
-namespace {
-
-Eigen::AlignedBox3d bounding_box(const octomap::OcTree& tree) {
-  double x0, y0, z0, x1, y1, z1;
-  tree.getMetricMin(x0, y0, z0);
-  tree.getMetricMax(x1, y1, z1);
-  if (tree.size() == 0) return Eigen::AlignedBox3d();  // empty
-  return Eigen::AlignedBox3d(Eigen::Vector3d(x0, y0, z0), Eigen::Vector3d(x1, y1, z1));
-}
-
-}  // namespace
 
 double estimate_overlap(const octomap::OcTree& target, const octomap::OcTree& source,
                         const Eigen::Matrix4d& T_target_source, std::size_t samples) {
-  const Eigen::AlignedBox3d target_box = bounding_box(target);
-  const Eigen::AlignedBox3d source_box = bounding_box(source);
+  const Eigen::AlignedBox3d target_box = leaf_bounds(target);
+  const Eigen::AlignedBox3d source_box = leaf_bounds(source);
   if (target_box.isEmpty() || source_box.isEmpty()) return 0.0;
   Eigen::AlignedBox3d moved;  // the source's box in the target frame (axis-aligned hull)
   for (int c = 0; c < 8; ++c) {
@@ -113,7 +103,7 @@ Edge make_edge(const RobotRecord& target, const RobotRecord& source, const align
   e.overlap = result.overlap;
   if (target.tree && source.tree) {
     const Eigen::Isometry3d T(result.T_target_source);
-    e.pivot_source = graph::overlap_pivot(bounding_box(*source.tree), bounding_box(*target.tree), T);
+    e.pivot_source = graph::overlap_pivot(leaf_bounds(*source.tree), leaf_bounds(*target.tree), T);
   }
   const graph::EdgeInformation info =
       graph::information_from_alignment({e.inliers, e.fitness, e.overlap, e.pivot_source});

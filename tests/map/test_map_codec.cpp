@@ -11,6 +11,8 @@
 #include <zstd.h>
 
 #include "map_test_util.hpp"
+#include "mapmerge/map/bounds.hpp"
+#include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/map_codec.hpp"
 
 namespace mapmerge {
@@ -429,6 +431,46 @@ TEST(Codec, ReadOctreeFileValidatesToo) {
   EXPECT_THROW(read_octree_file(test::data_path("missing.bt")), MapError);
   const auto tree = read_octree_file(test::data_path("geb079.bt"));
   EXPECT_DOUBLE_EQ(tree->getResolution(), 0.08);
+}
+
+/// OctoMap's own extent (one leaf iteration per call) against leaf_bounds().
+void expect_octomap_bounds(const octomap::OcTree& tree, const std::string& what) {
+  double x0, y0, z0, x1, y1, z1;
+  tree.getMetricMin(x0, y0, z0);
+  tree.getMetricMax(x1, y1, z1);
+  const Eigen::AlignedBox3d b = leaf_bounds(tree);
+  ASSERT_FALSE(b.isEmpty()) << what;
+  const double eps = 1e-6;
+  EXPECT_NEAR(b.min().x(), x0, eps) << what;
+  EXPECT_NEAR(b.min().y(), y0, eps) << what;
+  EXPECT_NEAR(b.min().z(), z0, eps) << what;
+  EXPECT_NEAR(b.max().x(), x1, eps) << what;
+  EXPECT_NEAR(b.max().y(), y1, eps) << what;
+  EXPECT_NEAR(b.max().z(), z1, eps) << what;
+}
+
+TEST(Bounds, LeafBoundsAreOctomapsExtentOnRealMapsAndTheirParts) {
+  for (const char* name : kMaps) {
+    const auto tree = read_octree_file(test::data_path(name));
+    expect_octomap_bounds(*tree, name);
+    // A part moved off the origin (negative and positive keys, pruned blocks at the faces).
+    const auto part = crop_and_transform(*tree, Eigen::AlignedBox3d(Eigen::Vector3d(-3, -2, -1), Eigen::Vector3d(4, 2.5, 1.5)),
+                                         Eigen::Isometry3d(Eigen::Translation3d(-7.3, 11.1, 0.4)));
+    part->prune();
+    expect_octomap_bounds(*part, std::string(name) + " part");
+  }
+  // One pruned leaf: a whole block of 8x8x8 voxels.
+  octomap::OcTree block(0.1);
+  for (int x = 0; x < 8; ++x)
+    for (int y = 0; y < 8; ++y)
+      for (int z = 0; z < 8; ++z) block.updateNode(octomap::OcTreeKey(32768 + x, 32760 + y, 32768 + z), true);
+  block.prune();
+  ASSERT_LT(block.getNumLeafNodes(), 8u);
+  expect_octomap_bounds(block, "block");
+  const Eigen::AlignedBox3d b = leaf_bounds(block);
+  EXPECT_NEAR(b.min().y(), -0.8, 1e-9);
+  EXPECT_NEAR(b.max().x(), 0.8, 1e-9);
+  EXPECT_TRUE(leaf_bounds(octomap::OcTree(0.05)).isEmpty());
 }
 
 }  // namespace

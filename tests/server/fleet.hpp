@@ -75,7 +75,8 @@ struct ReceivedGlobal {
   std::shared_ptr<octomap::OcTree> tree;
   std::vector<std::string> contributors;
   std::map<std::string, std::uint64_t> contributor_sequence;  ///< robot -> map sequence fused
-  std::chrono::steady_clock::time_point received;
+  std::chrono::steady_clock::time_point received;  ///< when it was decoded (or taken, if not decoded)
+  std::chrono::steady_clock::time_point arrived;   ///< when the sample reached the listener
 };
 
 struct ReceivedMerge {

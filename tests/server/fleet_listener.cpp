@@ -69,7 +69,8 @@ struct FleetListener::Impl {
     ++status.count;
   }
 
-  template <class Msg, class F>
+  /// Calls `f` for every sample, under the mutex unless `kLocked` is false (`f` then locks).
+  template <class Msg, class F, bool kLocked = true>
   struct Reader : fdds::DataReaderListener {
     Impl* impl;
     F f;
@@ -79,8 +80,12 @@ struct FleetListener::Impl {
       fdds::SampleInfo info;
       while (r->take_next_sample(&m, &info) == ReturnCode_t::RETCODE_OK) {
         if (!info.valid_data) continue;
-        std::lock_guard<std::mutex> lock(impl->mutex);
-        f(m);
+        if (kLocked) {
+          std::lock_guard<std::mutex> lock(impl->mutex);
+          f(m);
+        } else {
+          f(m);
+        }
         impl->cv.notify_all();
       }
     }
@@ -89,9 +94,9 @@ struct FleetListener::Impl {
   std::unique_ptr<wire::FastddsParticipant> participant;
   fdds::DataWriter* request_writer = nullptr;
 
-  template <class PubSub, class Msg, class F>
+  template <class PubSub, class Msg, bool kLocked = true, class F>
   void subscribe(const char* topic, wire::TopicKind kind, F f) {
-    auto l = std::make_unique<Reader<Msg, F>>(this, std::move(f));
+    auto l = std::make_unique<Reader<Msg, F, kLocked>>(this, std::move(f));
     participant->create_reader(participant->topic<PubSub>(topic), kind, l.get());
     listeners.push_back(std::move(l));
   }
@@ -109,17 +114,28 @@ struct FleetListener::Impl {
     if (r.status == 1) acked.aligned_pose[p.robot_id()] = r.T_global_robot;
   }
 
+  /// Decodes outside the mutex, and frees the map it replaces after the new one is taken: a
+  /// Freiburg-size global map takes ~50 ms to decode and ~65 ms to free.
   void on_global(const mapmerge::GlobalMap& g) {
-    if (g.version() < acked.global_version) ++acked.version_regressions;
-    acked.global_version = std::max(acked.global_version, g.version());
-    for (const auto& c : g.contributors()) acknowledge(c.robot_id(), c.session_id(), c.sequence_number());
+    const auto arrived = std::chrono::steady_clock::now();
+    bool decode = false;
+    {
+      std::lock_guard<std::mutex> lock(mutex);
+      decode = decode_globals;
+    }
     std::shared_ptr<octomap::OcTree> tree;
-    if (decode_globals) {
+    if (decode) {
       auto decoded = decode_map(g.data(), g.encoding(), DecodeLimits{});
       if (!decoded.ok()) return;
       tree = std::shared_ptr<octomap::OcTree>(std::move(decoded.tree));
     }
+    std::shared_ptr<octomap::OcTree> replaced;
+    std::lock_guard<std::mutex> lock(mutex);
+    if (g.version() < acked.global_version) ++acked.version_regressions;
+    acked.global_version = std::max(acked.global_version, g.version());
+    for (const auto& c : g.contributors()) acknowledge(c.robot_id(), c.session_id(), c.sequence_number());
     global.version = g.version();
+    replaced = std::move(global.tree);
     global.tree = std::move(tree);
     global.contributors.clear();
     global.contributor_sequence.clear();
@@ -129,7 +145,9 @@ struct FleetListener::Impl {
     }
     if (observer) observer(global.version, global.contributor_sequence);
     global.received = std::chrono::steady_clock::now();
+    global.arrived = arrived;
     ++globals;
+    cv.notify_all();  // before `replaced` is freed
   }
 };
 
@@ -145,7 +163,7 @@ FleetListener::FleetListener(int domain, const wire::ProfileSpec& profile, const
   using wire::TopicKind;
   impl->subscribe<mapmerge::RobotPosePubSubType, mapmerge::RobotPose>(
       wire::kPosesTopic, TopicKind::State, [impl](const mapmerge::RobotPose& p) { impl->on_pose(p); });
-  impl->subscribe<mapmerge::GlobalMapPubSubType, mapmerge::GlobalMap>(
+  impl->subscribe<mapmerge::GlobalMapPubSubType, mapmerge::GlobalMap, false>(
       wire::kGlobalMapTopic, TopicKind::State, [impl](const mapmerge::GlobalMap& g) { impl->on_global(g); });
   impl->subscribe<octomap_msgs::msg::dds_::Octomap_PubSubType, octomap_msgs::msg::dds_::Octomap_>(
       wire::kRosGlobalMapTopic, TopicKind::State,

@@ -3,6 +3,8 @@
 #include <cmath>
 #include <stdexcept>
 
+#include "mapmerge/map/bounds.hpp"
+
 namespace mapmerge {
 
 Eigen::Isometry3d make_transform(double x, double y, double z, double roll, double pitch, double yaw) {
@@ -88,11 +90,7 @@ std::unique_ptr<octomap::OcTree> crop_and_transform(const octomap::OcTree& tree,
   out->setOccupancyThres(tree.getOccupancyThres());
   const Eigen::Isometry3d T_in_out = T_out_in.inverse();
   // The leaf iterator needs a box inside the tree's key range: clamp to the map's extent.
-  double x0, y0, z0, x1, y1, z1;
-  tree.getMetricMin(x0, y0, z0);
-  tree.getMetricMax(x1, y1, z1);
-  const Eigen::AlignedBox3d inside = box.intersection(
-      Eigen::AlignedBox3d(Eigen::Vector3d(x0, y0, z0), Eigen::Vector3d(x1, y1, z1)));
+  const Eigen::AlignedBox3d inside = box.intersection(leaf_bounds(tree));
   if (tree.size() == 0 || inside.isEmpty()) return out;
   const octomap::point3d bmin(static_cast<float>(inside.min().x()), static_cast<float>(inside.min().y()),
                               static_cast<float>(inside.min().z()));

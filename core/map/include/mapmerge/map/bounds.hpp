@@ -1,0 +1,16 @@
+#pragma once
+/// The extent of an octree's leaves.
+
+#include <Eigen/Geometry>
+#include <octomap/OcTree.h>
+
+namespace mapmerge {
+
+/// The box [m] spanned by the leaves of `tree`, occupied and free, each leaf counted with its
+/// whole cube: what OcTree::getMetricMin()/getMetricMax() report, but from one walk that skips
+/// every subtree lying inside the box found so far (O(nodes near the box's faces) on real maps),
+/// where OctoMap's const versions iterate over all leaves, once for each call. An empty box for
+/// an empty tree.
+Eigen::AlignedBox3d leaf_bounds(const octomap::OcTree& tree);
+
+}  // namespace mapmerge
