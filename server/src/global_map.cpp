@@ -114,6 +114,10 @@ std::optional<GlobalMapOut> GlobalMapBuilder::build(const Registry& registry, st
     maps = placed_maps(registry, g.contributors);  // no fused poses to keep in a new fusion
   }
   deferred_ = defer_moves(maps, g.contributors);
+  for (const PlacedMap& m : maps) {  // freed by release_replaced(), after the map is out
+    if (auto old = fusion_->map_of(m.robot); old && old != m.tree) replaced_.push_back(std::move(old));
+    if (auto old = fusion_->body_of(m.robot); old && old != m.body) replaced_.push_back(std::move(old));
+  }
   const GlobalSync sync = sync_global(*fusion_, maps, refused_);
   for (const auto& [robot, reason] : sync.skipped) {
     spdlog::warn("robot {}: map left out of the global map: {}", robot, reason);

@@ -189,7 +189,10 @@ void Server::loop_once() {
 void Server::publish_global() {
   const auto t0 = Clock::now();
   auto global = builder_.build(registry_, version_ + 1);
-  if (!global) return;
+  if (!global) {
+    builder_.release_replaced();
+    return;
+  }
   const auto t_built = Clock::now();
   version_ = global->version;
   const auto poses = current_poses();
@@ -200,6 +203,7 @@ void Server::publish_global() {
   last_global_ = std::move(global);
   republish();
   const auto t_published = Clock::now();
+  builder_.release_replaced();
   std::string unaligned;
   for (const PoseOut& p : poses) {
     if (p.state != PoseState::kAligned) unaligned += " " + p.robot_id;

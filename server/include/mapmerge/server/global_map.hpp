@@ -45,6 +45,9 @@ class GlobalMapBuilder {
     std::size_t from_bodies = 0;  ///< ... of which read off the payloads' bytes (no tree walk)
   };
   Stages last_stages() const { return stages_; }
+  /// Frees the maps the last build replaced in the fusion. build() keeps them: freeing a
+  /// Freiburg-size octree takes ~30-60 ms, which the publishing path need not wait for.
+  void release_replaced() { replaced_.clear(); }
   /// Bytes held by the global map's sums.
   std::size_t memory_usage() const { return fusion_ ? fusion_->memory_usage() : 0; }
 
@@ -61,6 +64,7 @@ class GlobalMapBuilder {
   bool deferred_ = false;
   std::map<std::string, std::pair<std::weak_ptr<const octomap::OcTree>, Eigen::AlignedBox3d>> extents_;  ///< per robot
   Stages stages_;
+  std::vector<std::shared_ptr<const void>> replaced_;  ///< maps and bodies the last build replaced
 };
 
 /// One pose per robot known to the registry.
