@@ -32,6 +32,7 @@ struct Options {
   int timeout_s = 900;
   double strip_share = 0.45;  ///< each robot sees this share of the map's length
   double grow = 1.0;          ///< an incremental update grows a robot's map by this much [m]
+  double period_s = 0.0;      ///< an update starts this long after the last one started (0: at once)
   std::string log_level = "info";  ///< the server's
 };
 
@@ -40,7 +41,7 @@ struct Result {
   double first_global_s = 0, all_aligned_s = -1, map_kb_per_robot = 0;
   std::vector<double> incremental_ms;
   std::vector<double> encode_ms, arrival_ms, receiver_decode_ms;  ///< parts of incremental_ms
-  double cpu_s = 0, peak_rss_mb = 0, max_rot_deg = 0, max_trans_m = 0;
+  double cpu_s = 0, peak_rss_mb = 0, end_rss_mb = 0, max_rot_deg = 0, max_trans_m = 0;
   std::map<std::string, std::vector<double>> stages;  ///< server-side stage -> ms per incremental update
 };
 
@@ -141,11 +142,17 @@ void incremental(const Options& o, Result& r, mt::FleetListener& op, const std::
     if (global.contributor_sequence.count(robots[i].id)) known.push_back(i);
   }
   if (known.empty()) return;
+  Clock::time_point last_start;
   for (int u = 0; u < o.updates; ++u) {
     const std::size_t i = known[static_cast<std::size_t>(u) % known.size()];
     const std::uint64_t seq = 2 + static_cast<std::uint64_t>(u);
     const bool grown = (u / known.size()) % 2 == 0;
+    if (u > 0 && o.period_s > 0.0) {
+      std::this_thread::sleep_until(last_start + std::chrono::duration_cast<Clock::duration>(
+                                                     std::chrono::duration<double>(o.period_s)));
+    }
     const auto t0 = Clock::now();
+    last_start = t0;
     const auto bytes = mapmerge::encode_map(grown ? *fleet[i].grown.tree : *fleet[i].map.tree,
                                             mapmerge::Encoding::kOctomapBt);
     const auto t_encoded = Clock::now();
@@ -184,6 +191,7 @@ Result run(const Options& o, int n) {
   const auto stats = mapmerge::bench::proc_stats(server.pid());
   r.cpu_s = stats.cpu_s;
   r.peak_rss_mb = stats.hwm_mb;
+  r.end_rss_mb = stats.rss_mb;
   server.kill(SIGTERM);
   r.stages = incremental_stages(dir + "/server.log");
   return r;
@@ -194,9 +202,9 @@ void print(const Result& r) {
   std::sort(v.begin(), v.end());
   const double med = v.empty() ? -1 : v[v.size() / 2], mx = v.empty() ? -1 : v.back();
   const double p95 = v.empty() ? -1 : v[static_cast<std::size_t>(std::ceil(0.95 * static_cast<double>(v.size()))) - 1];
-  std::printf("| %2d | %2d | %6.1f | %7.1f | %3zu | %6.0f | %6.0f | %6.0f | %5.2f | %4.2f | %7.1f | %6.0f | %5.1f | %5.3f |\n",
+  std::printf("| %2d | %2d | %6.1f | %7.1f | %3zu | %6.0f | %6.0f | %6.0f | %5.2f | %4.2f | %7.1f | %6.0f | %5.1f | %6.0f | %5.3f |\n",
               r.n, r.aligned, r.first_global_s, r.all_aligned_s, v.size(), med, p95, mx, r.max_rot_deg, r.max_trans_m,
-              r.cpu_s, r.peak_rss_mb, r.peak_rss_mb / r.n, r.map_kb_per_robot / 1024.0);
+              r.cpu_s, r.peak_rss_mb, r.peak_rss_mb / r.n, r.end_rss_mb, r.map_kb_per_robot / 1024.0);
   std::fflush(stdout);
 }
 
@@ -212,13 +220,16 @@ int main(int argc, char** argv) {
   app.add_option("--timeout", o.timeout_s, "seconds to wait for the whole fleet to be merged");
   app.add_option("--strip-share", o.strip_share, "share of the map's length each robot sees");
   app.add_option("--log-level", o.log_level, "the server's log level");
+  app.add_option("--period", o.period_s,
+                 "seconds from one update's start to the next (0: each right after the last was received)");
   app.add_option("--grow", o.grow, "an incremental update grows the robot's map by this much [m]");
   CLI11_PARSE(app, argc, argv);
   std::printf("map %s; columns: robots | aligned | first global [s] | all merged [s] | incremental updates measured, "
               "median/p95/max [ms] | "
-              "max rot err [deg] | max trans err [m] | server CPU [s] | peak RSS [MB] | RSS/robot [MB] | map/robot [MB]\n",
+              "max rot err [deg] | max trans err [m] | server CPU [s] | peak RSS [MB] | peak RSS/robot [MB] | RSS at the end [MB] | "
+              "map/robot [MB]\n",
               o.map.c_str());
-  std::printf("|  N | al | first  | all     | n   | incr50 | incr95 | incrMx | rot   | tr   | cpu     | rss    | rss/r | map   |\n");
+  std::printf("|  N | al | first  | all     | n   | incr50 | incr95 | incrMx | rot   | tr   | cpu     | rss    | rss/r | rssEnd | map   |\n");
   std::vector<Result> results;
   for (int n : o.robots) {
     results.push_back(run(o, n));

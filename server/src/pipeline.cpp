@@ -101,7 +101,7 @@ bool Pipeline::ingest(const MapSample& m, bool persist) {
   r.tree = decoded.tree;
   r.body = decoded.body;
   r.content_hash = content_hash(m);
-  const std::size_t leaves = decoded.tree->getNumLeafNodes();
+  const std::size_t nodes = decoded.num_nodes;  // the tree's count: no walk (getNumLeafNodes() is one)
   warn_on_resolution(robot, r.resolution);
   // Stored before the registry (and so the status topic and the global map) shows it: what the
   // server has published is never lost by a crash. A failed write keeps the map in memory.
@@ -119,8 +119,8 @@ bool Pipeline::ingest(const MapSample& m, bool persist) {
   }
   registry_.put_map(std::move(r));
   ++accepted_;
-  spdlog::info("robot {}: map {}/{} accepted ({} leaves, {:.3f} m; decode {:.0f} ms, store {:.0f} ms)", robot,
-               m.session_id, m.sequence, leaves, decoded.tree->getResolution(), decode_s * 1e3, seconds_since(t1) * 1e3);
+  spdlog::info("robot {}: map {}/{} accepted ({} nodes, {:.3f} m; decode {:.0f} ms, store {:.0f} ms)", robot,
+               m.session_id, m.sequence, nodes, decoded.tree->getResolution(), decode_s * 1e3, seconds_since(t1) * 1e3);
   return true;
 }
 
