@@ -3,6 +3,7 @@
 // Exit codes: 0 clean shutdown (SIGINT/SIGTERM); 1 runtime failure (DDS entities, unexpected
 // error); 2 bad command line or configuration; 3 the state store cannot be opened or read.
 
+#include <malloc.h>
 #include <unistd.h>
 
 #include <atomic>
@@ -24,6 +25,8 @@ namespace {
 using mapmerge::server::ServerConfig;
 
 enum ExitCode { kOk = 0, kRuntimeError = 1, kUsageError = 2, kStoreError = 3 };
+
+constexpr int kMallocArenas = 2;  ///< glibc malloc arenas (see main)
 
 struct Flags {
   std::string config_file, state_dir, profile, reference, discovery_server, keystore, enclave, log_level = "info";
@@ -97,6 +100,12 @@ int run_export(const ServerConfig& config, const std::string& prefix) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  // Maps are decoded, fused and freed on several threads: with glibc's default of up to 8
+  // arenas per core, the memory each thread frees stays in its own arena and the resident set
+  // grows with the number of threads that ever decoded a map. With two arenas, 2 fr_079 robots
+  // peak at 435-510 MB instead of 620-680 MB, same latency (one arena: ~435 MB, but decoding
+  // waits for the refinement threads' allocations). MALLOC_ARENA_MAX in the environment wins.
+  if (std::getenv("MALLOC_ARENA_MAX") == nullptr) mallopt(M_ARENA_MAX, kMallocArenas);
   // A file size limit (RLIMIT_FSIZE) reached by the state store is a failed write (EFBIG),
   // reported and retried like a full disk, not the end of the process.
   std::signal(SIGXFSZ, SIG_IGN);
