@@ -24,14 +24,7 @@ Server::Server(ServerConfig config) : config_(std::move(config)) {
     cv_.notify_all();
   };
   hooks.cancelled = [this] { return stopping_.load(); };
-  hooks.refine = [this](const std::string& job) {
-    if (dirty_) {  // a global build will fuse the map: refine after it is out
-      std::lock_guard<std::mutex> lock(refine_mutex_);
-      held_refinements_.push_back(job);
-      return;
-    }
-    scheduler_->retry(job);
-  };
+  hooks.refine = [this](const std::string& job) { scheduler_->retry(job); };
   hooks.more_idle_work = [this] {
     if (scheduler_) scheduler_->kick_idle();
   };
@@ -183,11 +176,9 @@ void Server::loop_once() {
     dirty_ = false;
     last_build_ = now;
     publish_global();
-    release_refinements();
   } else if (requested_.exchange(false) || now - last_republish_ >= seconds(config_.publish.republish_period_s)) {
     republish();
   }
-  if (!dirty_) release_refinements();  // held while a build was pending that has now run
   if (store_ && now - last_store_retry_ >= seconds(config_.store.retry_period_s)) {
     last_store_retry_ = now;
     store_->retry();  // writes that failed (disk full, read-only): logged and on the status topic
@@ -231,15 +222,6 @@ void Server::publish_global() {
                ms(t_published - t0), st.fuse_s * 1e3, st.encode_s * 1e3,
                ms(t_built - t0) - (st.fuse_s + st.encode_s) * 1e3, ms(t_stored - t_built), ms(t_published - t_stored),
                poses.size(), unaligned.empty() ? "" : ", not aligned:", unaligned);
-}
-
-void Server::release_refinements() {
-  std::vector<std::string> jobs;
-  {
-    std::lock_guard<std::mutex> lock(refine_mutex_);
-    jobs.swap(held_refinements_);
-  }
-  for (const std::string& job : jobs) scheduler_->retry(job);
 }
 
 void Server::republish() {

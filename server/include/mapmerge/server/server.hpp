@@ -49,8 +49,6 @@ class Server {
   void republish();
   void publish_status();
   std::vector<PoseOut> current_poses() const;
-  /// Hands the refinements held back for the pending global build to the scheduler.
-  void release_refinements();
 
   ServerConfig config_;
   Registry registry_;
@@ -70,10 +68,6 @@ class Server {
   std::atomic<std::uint64_t> conflicting_{0};  ///< updates of a session that another one replaced
   std::uint64_t version_ = 0;
   std::optional<GlobalMapOut> last_global_;
-  /// Refinements of known robots whose grown maps a pending global build fuses: they start once
-  /// it is published, so the build (on the path of the update to the fleet) has the cores.
-  std::mutex refine_mutex_;
-  std::vector<std::string> held_refinements_;
   Clock::time_point last_build_{}, last_republish_{}, last_status_{}, last_store_retry_{};
 };
 
