@@ -71,7 +71,6 @@ DecodedMap decode_sample(const MapSample& s, const DecodeLimits& limits) {
                  std::to_string(r.tree->getResolution());
     return out;
   }
-  out.num_nodes = r.tree->size();
   out.tree = std::shared_ptr<const octomap::OcTree>(std::move(r.tree));
   out.body = std::move(r.binary_body);
   return out;

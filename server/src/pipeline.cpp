@@ -101,7 +101,7 @@ bool Pipeline::ingest(const MapSample& m, bool persist) {
   r.tree = decoded.tree;
   r.body = decoded.body;
   r.content_hash = content_hash(m);
-  const std::size_t nodes = decoded.num_nodes;  // the tree's count: no walk (getNumLeafNodes() is one)
+  const std::size_t nodes = decoded.tree->size();  // a counter; getNumLeafNodes() walks the tree
   warn_on_resolution(robot, r.resolution);
   // Stored before the registry (and so the status topic and the global map) shows it: what the
   // server has published is never lost by a crash. A failed write keeps the map in memory.

@@ -24,7 +24,6 @@ struct DecodedMap {
   std::shared_ptr<const octomap::OcTree> tree;  ///< null when rejected
   std::shared_ptr<const std::vector<std::uint8_t>> body;  ///< the binary body it was read from (null for `.ot`)
   std::string reason;                           ///< why rejected
-  std::size_t num_nodes = 0;                    ///< nodes of the tree (inner + leaves)
 };
 
 /// Validates and decodes a received map (native payload or ROS 2 tree body); a robot id that
