@@ -92,6 +92,16 @@ double translation_error_m(const Eigen::Matrix4d& T_true, const Eigen::Matrix4d&
   return (T_true.topRightCorner<3, 1>() - T_est.topRightCorner<3, 1>()).norm();
 }
 
+double global_coverage_after(FleetListener& op, const octomap::OcTree& expected, const Eigen::Matrix4d& T_global_expected,
+                             double share, std::chrono::seconds timeout) {
+  const auto coverage = [&] {
+    const auto g = op.global();
+    return g.tree ? occupied_coverage(*g.tree, expected, T_global_expected) : 0.0;
+  };
+  op.wait_for([&] { return coverage() > share; }, timeout);
+  return coverage();
+}
+
 double occupied_coverage(const octomap::OcTree& map, const octomap::OcTree& expected,
                          const Eigen::Matrix4d& T_map_expected, int stride) {
   std::size_t seen = 0, hit = 0;

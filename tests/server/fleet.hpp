@@ -158,6 +158,12 @@ double translation_error_m(const Eigen::Matrix4d& T_true, const Eigen::Matrix4d&
 double occupied_coverage(const octomap::OcTree& map, const octomap::OcTree& expected,
                          const Eigen::Matrix4d& T_map_expected, int stride = 7);
 
+/// occupied_coverage() of the operator's latest global map (0 before one was decoded), after
+/// waiting up to `timeout` for it to exceed `share`. A grown map is fused at once with the pose
+/// from before its refinement, which races the build: a later global map may be the placed one.
+double global_coverage_after(FleetListener& op, const octomap::OcTree& expected, const Eigen::Matrix4d& T_global_expected,
+                             double share, std::chrono::seconds timeout);
+
 /// A fresh directory under the test's temp dir.
 std::string temp_dir(const std::string& name);
 

@@ -94,14 +94,7 @@ TEST_F(ServerFleet, BurstOfFiftyUpdatesIsCoalescedAndTheLastOneFused) {
   for (std::uint64_t seq = 2; seq <= 50; ++seq) pubs[1]->publish(seq < 50 ? *fleet().robots[1].tree : *grown.tree, "s1", seq);
   ASSERT_TRUE(op.wait_for([&] { return op.global().contributor_sequence["r2"] == 50; }, kMergeTimeout))
       << server->log();
-  // Fused at once with r2's known pose; the refinement on the grown map may come in a later
-  // global map (it races the build): wait for that one.
-  const auto covered = [&] {
-    const auto g = op.global();
-    return g.tree ? occupied_coverage(*g.tree, *grown.tree, fleet().truth(1)) : 0.0;
-  };
-  op.wait_for([&] { return covered() > 0.9; }, kMergeTimeout);
-  EXPECT_GT(covered(), 0.9) << server->log();
+  EXPECT_GT(global_coverage_after(op, *grown.tree, fleet().truth(1), 0.9, kMergeTimeout), 0.9) << server->log();
   // The map topic keeps the latest sample per robot (KEEP_LAST 1): under load DDS may replace
   // samples of the burst before they are sent, so only the last one is sure to arrive. Wait for
   // the status of the server holding it.
