@@ -197,6 +197,12 @@ Result run(const Options& o, int n) {
   return r;
 }
 
+/// The middle value (upper median) of `v`; -1 when empty.
+double median(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  return v.empty() ? -1.0 : v[v.size() / 2];
+}
+
 void print(const Result& r) {
   auto v = r.incremental_ms;
   std::sort(v.begin(), v.end());
@@ -238,15 +244,10 @@ int main(int argc, char** argv) {
   std::printf("\nserver stages of incremental updates, median ms (map decode/store: every accepted map)\n");
   for (const Result& r : results) {
     std::printf("N=%2d:", r.n);
-    const auto median = [](std::vector<double> v) {
-      std::sort(v.begin(), v.end());
-      return v.empty() ? -1.0 : v[v.size() / 2];
-    };
     std::printf(" [outside the server: robot encode %.1f; publish -> global arrived %.1f; receiver decode %.1f]",
                 median(r.encode_ms), median(r.arrival_ms), median(r.receiver_decode_ms));
-    for (auto [stage, v] : r.stages) {
-      std::sort(v.begin(), v.end());
-      std::printf(" %s %.1f;", stage.c_str(), v.empty() ? -1.0 : v[v.size() / 2]);
+    for (const auto& [stage, v] : r.stages) {
+      std::printf(" %s %.1f;", stage.c_str(), median(v));
     }
     std::printf("\n");
   }
