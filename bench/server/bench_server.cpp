@@ -45,16 +45,16 @@ struct Result {
   std::map<std::string, std::vector<double>> stages;  ///< server-side stage -> ms per incremental update
 };
 
-/// The server's own stage times of single-robot updates, from its log: decode and store of the
+/// The server's own stage times of single-robot updates, from its log: check and store of the
 /// map; fuse, encode, poses, store and publish of the global map it triggered.
 std::map<std::string, std::vector<double>> incremental_stages(const std::string& log_path) {
   std::map<std::string, std::vector<double>> stages;
   std::ifstream log(log_path);
   for (std::string line; std::getline(log, line);) {
     double a = 0, b = 0, c = 0, d = 0, e = 0;
-    const auto accepted = line.find("; decode ");
-    if (accepted != std::string::npos && std::sscanf(line.c_str() + accepted, "; decode %lf ms, store %lf ms", &a, &b) == 2) {
-      stages["map decode"].push_back(a);
+    const auto accepted = line.find("; check ");
+    if (accepted != std::string::npos && std::sscanf(line.c_str() + accepted, "; check %lf ms, store %lf ms", &a, &b) == 2) {
+      stages["map check"].push_back(a);
       stages["map store"].push_back(b);
       continue;
     }
@@ -241,7 +241,7 @@ int main(int argc, char** argv) {
     results.push_back(run(o, n));
     print(results.back());
   }
-  std::printf("\nserver stages of incremental updates, median ms (map decode/store: every accepted map)\n");
+  std::printf("\nserver stages of incremental updates, median ms (map check/store: every accepted map)\n");
   for (const Result& r : results) {
     std::printf("N=%2d:", r.n);
     std::printf(" [outside the server: robot encode %.1f; publish -> global arrived %.1f; receiver decode %.1f]",

@@ -39,9 +39,9 @@ ExportedGlobal export_global(const ServerConfig& config, const std::string& pref
     const auto p = std::find_if(snap.poses.begin(), snap.poses.end(), [&](const PoseOut& s) { return s.robot_id == c.robot_id; });
     if (m == snap.maps.end() || p == snap.poses.end() || p->state != PoseState::kAligned) continue;
     const DecodedMap decoded = decode_sample(*m, config.limits);
-    if (!decoded.tree) continue;
-    trees.push_back(decoded.tree);
-    maps.push_back(NamedMap{c.robot_id, decoded.tree.get(), p->T_global_robot});
+    if (!decoded.map) continue;
+    trees.push_back(decoded.map->tree());
+    maps.push_back(NamedMap{c.robot_id, trees.back().get(), p->T_global_robot});
   }
   const Provenance provenance = provenance_of(maps, g.resolution);
   write_file(prefix + ".bt", as_bt(g, config.limits));

@@ -24,9 +24,9 @@ PoseState to_pose_state(RobotStatus s) {
 /// The global resolution: configured, else the reference's, else the finest aligned map's.
 double global_resolution(const Registry& registry, const ServerConfig& config, const std::vector<PlacedMap>& maps) {
   if (config.merge.global_resolution > 0.0) return config.merge.global_resolution;
-  if (auto ref = registry.get(registry.reference()); ref && ref->tree) return ref->tree->getResolution();
-  double res = maps.front().tree->getResolution();
-  for (const auto& m : maps) res = std::min(res, m.tree->getResolution());
+  if (auto ref = registry.get(registry.reference()); ref && ref->map) return ref->map->resolution();
+  double res = maps.front().map->resolution();
+  for (const auto& m : maps) res = std::min(res, m.map->resolution());
   return res;
 }
 
@@ -48,14 +48,14 @@ std::vector<PlacedMap> GlobalMapBuilder::placed_maps(const Registry& registry,
   std::vector<PlacedMap> maps;
   for (const auto& [robot, pose] : registry.poses()) {
     const auto rec = registry.get(robot);
-    if (!rec || !rec->tree) continue;
+    if (!rec || !rec->map) continue;
     if (!config_.merge.keep_lost_maps && !registry.presence(robot).alive) continue;  // gone: left out
     Eigen::Matrix4d T = pose.T_global_robot;
     const auto fused = fusion_ ? fusion_->pose_of(robot) : std::nullopt;
-    if (fused && max_displacement(*fused, T, extent(robot, rec->tree)) < 0.5 * fusion_->resolution()) {
+    if (fused && (*fused == T || max_displacement(*fused, T, extent(robot, rec->map)) < 0.5 * fusion_->resolution())) {
       T = *fused;  // no voxel of the map would move by half a voxel: keep what is fused
     }
-    maps.push_back(PlacedMap{robot, rec->tree, T, rec->body});
+    maps.push_back(PlacedMap{robot, rec->map, T});
     contributors.push_back(Contribution{robot, rec->session_id, rec->sequence});
   }
   return maps;
@@ -65,7 +65,7 @@ bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Con
   bool grown = false;  // a map to fuse by its difference (cheap)
   bool moved = false;  // a map to fuse whole: new robot or new pose (costly)
   for (const PlacedMap& m : maps) {
-    if (fusion_->holds(m.robot, m.tree.get(), m.T_global_robot)) continue;
+    if (fusion_->holds(m.robot, m.map.get(), m.T_global_robot)) continue;
     const auto fused = fusion_->pose_of(m.robot);
     (fused && *fused == m.T_global_robot ? grown : moved) = true;
   }
@@ -74,8 +74,7 @@ bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Con
     const auto fused = fusion_->pose_of(maps[i].robot);
     if (fused && *fused == maps[i].T_global_robot) continue;
     if (fused) {  // as it is fused now, with the contribution fused then
-      maps[i].tree = fusion_->map_of(maps[i].robot);
-      maps[i].body = fusion_->body_of(maps[i].robot);
+      maps[i].map = fusion_->map_of(maps[i].robot);
       maps[i].T_global_robot = *fused;
       const auto c = fused_contributions_.find(maps[i].robot);
       if (c != fused_contributions_.end()) contributors[i] = c->second;
@@ -89,11 +88,11 @@ bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Con
 }
 
 const Eigen::AlignedBox3d& GlobalMapBuilder::extent(const std::string& robot,
-                                                    const std::shared_ptr<const octomap::OcTree>& tree) {
-  auto& [map, box] = extents_[robot];
-  if (map.lock() != tree) {
-    box = leaf_bounds(*tree);
-    map = tree;
+                                                    const std::shared_ptr<const HeldMap>& map) {
+  auto& [held, box] = extents_[robot];
+  if (held.lock() != map) {
+    box = leaf_bounds(*map);
+    held = map;
   }
   return box;
 }
@@ -115,8 +114,7 @@ std::optional<GlobalMapOut> GlobalMapBuilder::build(const Registry& registry, st
   }
   deferred_ = defer_moves(maps, g.contributors);
   for (const PlacedMap& m : maps) {  // freed by release_replaced(), after the map is out
-    if (auto old = fusion_->map_of(m.robot); old && old != m.tree) replaced_.push_back(std::move(old));
-    if (auto old = fusion_->body_of(m.robot); old && old != m.body) replaced_.push_back(std::move(old));
+    if (auto old = fusion_->map_of(m.robot); old && old != m.map) replaced_.push_back(std::move(old));
   }
   const GlobalSync sync = sync_global(*fusion_, maps, refused_);
   for (const auto& [robot, reason] : sync.skipped) {

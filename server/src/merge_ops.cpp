@@ -56,23 +56,22 @@ DecodedMap decode_sample(const MapSample& s, const DecodeLimits& limits) {
     out.reason = "robot id '" + s.robot_id + "' does not match its topic " + s.topic;
     return out;
   }
-  DecodeResult r = s.ros ? decode_tree_body(s.ros_id, s.resolution, s.ros_binary, s.data, limits)
-                         : decode_map(s.data, s.encoding, limits);
+  CheckedMap r = s.ros ? check_tree_body(s.ros_id, s.resolution, s.ros_binary, s.data, limits)
+                       : check_map(s.data, s.encoding, limits);
   if (!r.ok()) {
     out.reason = std::string(to_string(r.error)) + ": " + r.reason;
     return out;
   }
-  if (r.empty || r.tree->size() == 0) {
+  if (r.empty || !r.map || r.map->num_nodes() == 0) {
     out.reason = "empty map";
     return out;
   }
-  if (!s.ros && s.resolution > 0.0 && std::abs(r.tree->getResolution() - s.resolution) > 1e-9) {
+  if (!s.ros && s.resolution > 0.0 && std::abs(r.map->resolution() - s.resolution) > 1e-9) {
     out.reason = "resolution field " + std::to_string(s.resolution) + " differs from the map's " +
-                 std::to_string(r.tree->getResolution());
+                 std::to_string(r.map->resolution());
     return out;
   }
-  out.tree = std::shared_ptr<const octomap::OcTree>(std::move(r.tree));
-  out.body = std::move(r.binary_body);
+  out.map = std::move(r.map);
   return out;
 }
 
@@ -101,9 +100,9 @@ Edge make_edge(const RobotRecord& target, const RobotRecord& source, const align
   Edge e{target.robot_id, source.robot_id, result.T_target_source, result.fitness};
   e.inliers = result.inliers;
   e.overlap = result.overlap;
-  if (target.tree && source.tree) {
+  if (target.map && source.map) {
     const Eigen::Isometry3d T(result.T_target_source);
-    e.pivot_source = graph::overlap_pivot(leaf_bounds(*source.tree), leaf_bounds(*target.tree), T);
+    e.pivot_source = graph::overlap_pivot(leaf_bounds(*source.map->tree()), leaf_bounds(*target.map->tree()), T);
   }
   const graph::EdgeInformation info =
       graph::information_from_alignment({e.inliers, e.fitness, e.overlap, e.pivot_source});
@@ -125,14 +124,14 @@ GlobalSync sync_global(GlobalFusion& fusion, const std::vector<PlacedMap>& maps,
     if (!listed) fusion.remove(robot);
   }
   for (const PlacedMap& m : maps) {
-    if (fusion.holds(m.robot, m.tree.get(), m.T_global_robot)) {
+    if (fusion.holds(m.robot, m.map.get(), m.T_global_robot)) {
       out.fused.push_back(m.robot);
       continue;
     }
     const auto r = refused.find(m.robot);
-    if (r != refused.end() && r->second.first.lock() == m.tree && r->second.second == m.T_global_robot) continue;
+    if (r != refused.end() && r->second.first.lock() == m.map && r->second.second == m.T_global_robot) continue;
     try {
-      const GlobalFuseResult res = fusion.set(m.robot, m.tree, m.T_global_robot, m.body);  // !ok: robot left out
+      const GlobalFuseResult res = fusion.set(m.robot, m.map, m.T_global_robot);  // !ok: robot left out
       if (!res.ok) throw MapError(res.reason);
       refused.erase(m.robot);
       out.fused.push_back(m.robot);
@@ -141,7 +140,7 @@ GlobalSync sync_global(GlobalFusion& fusion, const std::vector<PlacedMap>& maps,
       out.from_bodies += res.from_bodies ? 1 : 0;
     } catch (const std::exception& e) {
       fusion.remove(m.robot);
-      refused[m.robot] = {m.tree, m.T_global_robot};
+      refused[m.robot] = {m.map, m.T_global_robot};
       out.skipped.emplace_back(m.robot, e.what());
     }
   }

@@ -74,7 +74,7 @@ bool Pipeline::restore(const MapSample& map) { return ingest(map, false); }
 
 bool Pipeline::unchanged(const MapSample& m) {
   const auto held = registry_.get(m.topic_robot);
-  if (!held || !held->tree || held->session_id != m.session_id || held->content_hash != content_hash(m)) return false;
+  if (!held || !held->map || held->session_id != m.session_id || held->content_hash != content_hash(m)) return false;
   // Stored before the registry shows it (the status topic reports the registry's sequence).
   if (store_ != nullptr) store_->touch_map(m.topic_robot, m.session_id, m.sequence, m.received_unix);
   return registry_.touch_if_unchanged(m.topic_robot, m.session_id, m.sequence, content_hash(m), m.received_unix);
@@ -85,7 +85,7 @@ bool Pipeline::ingest(const MapSample& m, bool persist) {
   const auto t0 = std::chrono::steady_clock::now();
   DecodedMap decoded = decode_sample(m, config_.limits);
   const double decode_s = seconds_since(t0);
-  if (!decoded.tree) {
+  if (!decoded.map) {
     ++rejected_;
     registry_.reject(robot, decoded.reason);
     spdlog::warn("robot {}: update {}/{} rejected: {}", robot, m.session_id, m.sequence, decoded.reason);
@@ -96,12 +96,11 @@ bool Pipeline::ingest(const MapSample& m, bool persist) {
   r.session_id = m.session_id;
   r.sequence = m.sequence;
   r.frame_id = m.frame_id.empty() ? robot + "/map" : m.frame_id;
-  r.resolution = decoded.tree->getResolution();
+  r.resolution = decoded.map->resolution();
   r.received_unix = m.received_unix;
-  r.tree = decoded.tree;
-  r.body = decoded.body;
+  r.map = decoded.map;
   r.content_hash = content_hash(m);
-  const std::size_t nodes = decoded.tree->size();  // a counter; getNumLeafNodes() walks the tree
+  const std::size_t nodes = decoded.map->num_nodes();
   warn_on_resolution(robot, r.resolution);
   // Stored before the registry (and so the status topic and the global map) shows it: what the
   // server has published is never lost by a crash. A failed write keeps the map in memory.
@@ -119,14 +118,14 @@ bool Pipeline::ingest(const MapSample& m, bool persist) {
   }
   registry_.put_map(std::move(r));
   ++accepted_;
-  spdlog::info("robot {}: map {}/{} accepted ({} nodes, {:.3f} m; decode {:.0f} ms, store {:.0f} ms)", robot,
-               m.session_id, m.sequence, nodes, decoded.tree->getResolution(), decode_s * 1e3, seconds_since(t1) * 1e3);
+  spdlog::info("robot {}: map {}/{} accepted ({} nodes, {:.3f} m; check {:.0f} ms, store {:.0f} ms)", robot,
+               m.session_id, m.sequence, nodes, decoded.map->resolution(), decode_s * 1e3, seconds_since(t1) * 1e3);
   return true;
 }
 
 void Pipeline::warn_on_resolution(const std::string& robot, double resolution) const {
   const auto ref = registry_.get(registry_.reference());
-  if (ref && ref->tree && ref->robot_id != robot && std::abs(ref->resolution - resolution) > 1e-9) {
+  if (ref && ref->map && ref->robot_id != robot && std::abs(ref->resolution - resolution) > 1e-9) {
     spdlog::warn("robot {}: resolution {:.3f} m differs from the reference's {:.3f} m: fusion resamples it", robot,
                  resolution, ref->resolution);
   }
@@ -134,7 +133,7 @@ void Pipeline::warn_on_resolution(const std::string& robot, double resolution) c
 
 void Pipeline::place(const std::string& robot) {
   const auto rec = registry_.get(robot);
-  if (!rec || !rec->tree) return;
+  if (!rec || !rec->map) return;
   const std::string wanted = config_.merge.reference.empty() ? robot : config_.merge.reference;
   const std::string reference = registry_.claim_reference(wanted);
   if (robot == reference) {
@@ -165,17 +164,17 @@ void Pipeline::place(const std::string& robot) {
 
 void Pipeline::refine_turn(const std::string& robot) {
   const auto rec = registry_.get(robot);  // the latest map: earlier ones need no refinement
-  if (!rec || !rec->tree || registry_.poses().count(robot) == 0 || robot == registry_.reference()) return;
+  if (!rec || !rec->map || registry_.poses().count(robot) == 0 || robot == registry_.reference()) return;
   if (refine_known(*rec)) on_new_alignment(robot, false);
 }
 
 std::shared_ptr<const align::PreparedMap> Pipeline::prepared(const std::string& robot, bool features) {
   const auto rec = registry_.get(robot);
-  if (!rec || !rec->tree) return nullptr;
+  if (!rec || !rec->map) return nullptr;
   if (rec->prepared && (!features || rec->prepared->has_features())) return rec->prepared;
   std::string error;
   const auto t0 = std::chrono::steady_clock::now();
-  auto p = prepare(rec->tree, config_.align, features, error);
+  auto p = prepare(rec->map->tree(), config_.align, features, error);  // builds the tree
   spdlog::debug("robot {}: map prepared ({}) in {:.0f} ms", robot, features ? "features" : "refine only",
                 seconds_since(t0) * 1e3);
   if (!p) {
@@ -202,7 +201,7 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
   std::vector<std::pair<bool, std::shared_ptr<const RobotRecord>>> order;
   for (const auto& other : candidates) order.emplace_back(refused_before(rec, *other, "search"), other);
   std::stable_sort(order.begin(), order.end(), [](const auto& a, const auto& b) {
-    return a.first != b.first ? !a.first : a.second->tree->size() > b.second->tree->size();
+    return a.first != b.first ? !a.first : a.second->map->num_nodes() > b.second->map->num_nodes();
   });
   for (const auto& [refused, other] : order) {
     if (hooks_.cancelled && hooks_.cancelled()) return;
@@ -303,7 +302,7 @@ void Pipeline::on_new_alignment(const std::string& robot, bool joined) {
   if (!joined) return;  // the aligned group did not grow: nothing new to try the others against
   const auto poses = registry_.poses();
   for (const auto& r : registry_.all()) {
-    if (r->robot_id != robot && r->tree && poses.count(r->robot_id) == 0 && hooks_.retry) hooks_.retry(r->robot_id);
+    if (r->robot_id != robot && r->map && poses.count(r->robot_id) == 0 && hooks_.retry) hooks_.retry(r->robot_id);
   }
 }
 
@@ -385,7 +384,7 @@ double Pipeline::cached_overlap(const RobotRecord& target, const RobotRecord& so
       }
     }
   }
-  const double overlap = estimate_overlap(*target.tree, *source.tree, T_target_source,
+  const double overlap = estimate_overlap(*target.map->tree(), *source.map->tree(), T_target_source,
                                           static_cast<std::size_t>(config_.merge.extra_overlap_samples));
   std::lock_guard<std::mutex> lock(pairs_mutex_);
   overlaps_[key] = {target.content_hash, source.content_hash, T_target_source, overlap};
@@ -398,7 +397,7 @@ std::optional<Pipeline::ExtraPair> Pipeline::pick_extra_pair() {
   for (const Edge& e : registry_.edges()) linked.insert(ordered(e.target, e.source));
   std::vector<std::shared_ptr<const RobotRecord>> aligned;
   for (const auto& kv : poses) {
-    if (auto r = registry_.get(kv.first); r && r->tree) aligned.push_back(r);
+    if (auto r = registry_.get(kv.first); r && r->map) aligned.push_back(r);
   }
   std::optional<ExtraPair> best;
   for (std::size_t i = 0; i < aligned.size(); ++i) {
@@ -410,7 +409,7 @@ std::optional<Pipeline::ExtraPair> Pipeline::pick_extra_pair() {
         if (in_progress_.count(key) != 0) continue;
       }
       // The larger map is the target; the overlap is measured on the smaller one.
-      const bool i_larger = aligned[i]->tree->size() >= aligned[j]->tree->size();
+      const bool i_larger = aligned[i]->map->num_nodes() >= aligned[j]->map->num_nodes();
       const RobotRecord& t = i_larger ? *aligned[i] : *aligned[j];
       const RobotRecord& s = i_larger ? *aligned[j] : *aligned[i];
       const Eigen::Matrix4d T = rigid_inverse(poses.at(t.robot_id).T_global_robot) * poses.at(s.robot_id).T_global_robot;

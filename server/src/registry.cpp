@@ -183,7 +183,7 @@ bool Registry::touch_if_unchanged(const std::string& robot, const std::string& s
   const auto it = records_.find(robot);
   if (it == records_.end()) return false;
   const RobotRecord& held = *it->second;
-  if (!held.tree || held.session_id != session || held.content_hash != content_hash) return false;
+  if (!held.map || held.session_id != session || held.content_hash != content_hash) return false;
   RobotRecord& r = mutable_record(robot);  // copy on write: readers keep their snapshot
   r.sequence = sequence;
   r.received_unix = received_unix;
@@ -313,7 +313,7 @@ std::map<std::string, GlobalPose> Registry::poses_locked() const {
   }
   for (auto it = poses.begin(); it != poses.end();) {
     auto rec = records_.find(it->first);
-    const bool has_map = rec != records_.end() && rec->second->tree != nullptr;
+    const bool has_map = rec != records_.end() && rec->second->map != nullptr;
     it = has_map ? std::next(it) : poses.erase(it);
   }
   return poses;
@@ -355,7 +355,7 @@ RobotStatus Registry::status(const std::string& robot) const {
   std::lock_guard<std::mutex> lock(mutex_);
   if (poses_locked().count(robot) != 0) return RobotStatus::kAligned;
   auto it = records_.find(robot);
-  if (it != records_.end() && it->second->tree == nullptr && it->second->updates_rejected > 0) {
+  if (it != records_.end() && it->second->map == nullptr && it->second->updates_rejected > 0) {
     return RobotStatus::kRejected;
   }
   return RobotStatus::kUnknown;

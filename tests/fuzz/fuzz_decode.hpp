@@ -38,6 +38,17 @@ inline int check_round_trip(const DecodeResult& r, const DecodeLimits& limits) {
   return 1;
 }
 
+/// check_map()/check_tree_body() must accept and reject exactly what decoding does, and the tree
+/// a checked map builds later must be the decoded tree; aborts otherwise. Returns `r`'s verdict.
+inline int check_agrees(const DecodeResult& r, const CheckedMap& c, const DecodeLimits& limits) {
+  if (c.error != r.error || c.empty != r.empty || (c.ok() && !c.empty) != (c.map != nullptr)) std::abort();
+  if (c.map) {
+    if (c.map->num_nodes() != r.num_nodes || c.map->resolution() != r.tree->getResolution()) std::abort();
+    if (encode_map(*c.map->tree(), Encoding::kOctomapBt) != encode_map(*r.tree, Encoding::kOctomapBt)) std::abort();
+  }
+  return check_round_trip(r, limits);
+}
+
 /// Decodes one fuzz input every way it can be read; returns how many decodings accepted it.
 inline int decode_one(const std::uint8_t* data, std::size_t size) {
   static const DecodeLimits limits = fuzz_limits();
@@ -46,11 +57,14 @@ inline int decode_one(const std::uint8_t* data, std::size_t size) {
     return size >= n && std::memcmp(data, prefix, n) == 0;
   };
   if (starts_with("# Octomap")) {
-    return check_round_trip(decode_map(data, size, Encoding::kOctomapBt, limits), limits) +
-           check_round_trip(decode_map(data, size, Encoding::kOctomapOt, limits), limits);
+    return check_agrees(decode_map(data, size, Encoding::kOctomapBt, limits),
+                        check_map(data, size, Encoding::kOctomapBt, limits), limits) +
+           check_agrees(decode_map(data, size, Encoding::kOctomapOt, limits),
+                        check_map(data, size, Encoding::kOctomapOt, limits), limits);
   }
   if (starts_with("\x28\xB5\x2F\xFD")) {
-    return check_round_trip(decode_map(data, size, Encoding::kOctomapBtZstd, limits), limits);
+    return check_agrees(decode_map(data, size, Encoding::kOctomapBtZstd, limits),
+                        check_map(data, size, Encoding::kOctomapBtZstd, limits), limits);
   }
   if (size == 0) return 0;
   static const double resolutions[] = {0.05, 0.1, 0.02, 1.0, 0.0, -0.05,
@@ -58,7 +72,9 @@ inline int decode_one(const std::uint8_t* data, std::size_t size) {
   const bool binary = (data[0] & 1) == 0;
   const double res = resolutions[(data[0] >> 1) & 7];
   const char* id = (data[0] & 0x80) != 0 ? "ColorOcTree" : "OcTree";
-  return check_round_trip(decode_tree_body(id, res, binary, data + 1, size - 1, limits), limits);
+  const std::vector<std::uint8_t> body(data + 1, data + size);
+  return check_agrees(decode_tree_body(id, res, binary, body, limits), check_tree_body(id, res, binary, body, limits),
+                      limits);
 }
 
 }  // namespace mapmerge::fuzz

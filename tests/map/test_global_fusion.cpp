@@ -183,6 +183,15 @@ std::pair<Tree, std::shared_ptr<const std::vector<std::uint8_t>>> sent(const oct
   return {Tree(std::move(d.tree)), d.binary_body};
 }
 
+/// `tree` as the server receives it: the `.bt` payload checked, its tree not built.
+std::shared_ptr<const HeldMap> checked(const octomap::OcTree& tree) {
+  const std::vector<std::uint8_t> bytes = encode_map(tree, Encoding::kOctomapBt);
+  CheckedMap c = check_map(bytes.data(), bytes.size(), Encoding::kOctomapBt, DecodeLimits{});
+  EXPECT_TRUE(c.ok() && c.map) << c.reason;
+  EXPECT_FALSE(c.map->has_tree());
+  return c.map;
+}
+
 TEST_F(GlobalFusionTest, DifferencesReadOffTheBinaryBodiesEqualTheTreeWalk) {
   // The same sequence of received maps of one robot (grown, shrunk, edited inside, back to the
   // first), fused once with the payloads' binary bodies and once from the trees alone: the
@@ -212,16 +221,23 @@ TEST_F(GlobalFusionTest, DifferencesReadOffTheBinaryBodiesEqualTheTreeWalk) {
       {r2.map.get(), "the first again"},
   };
   const auto [r3_map, r3_body] = sent(*r3.map);
-  GlobalFusion with_bodies(res), trees_only(res);
+  GlobalFusion with_bodies(res), trees_only(res), checked_only(res);
   ASSERT_TRUE(with_bodies.set("r3", r3_map, T_global(r3), r3_body).ok);
   ASSERT_TRUE(trees_only.set("r3", r3_map, T_global(r3)).ok);
+  ASSERT_TRUE(checked_only.set("r3", checked(*r3.map), T_global(r3)).ok);
   std::vector<Tree> held;  // GlobalFusion holds only the latest map of a robot
   for (std::size_t k = 0; k < updates.size(); ++k) {
     const auto [map, body] = sent(*updates[k].first);
     held.push_back(map);
     const GlobalFuseResult a = with_bodies.set("r2", map, T_global(r2), body);
     const GlobalFuseResult b = trees_only.set("r2", map, T_global(r2));
-    ASSERT_TRUE(a.ok && b.ok) << updates[k].second;
+    // As the server receives it: a checked body whose tree is built only if fusion needs it.
+    const std::shared_ptr<const HeldMap> lazy = checked(*updates[k].first);
+    const GlobalFuseResult c = checked_only.set("r2", lazy, T_global(r2));
+    ASSERT_TRUE(a.ok && b.ok && c.ok) << updates[k].second;
+    EXPECT_EQ(lazy->has_tree(), k == 0) << updates[k].second << ": only the first map is fused whole";
+    EXPECT_EQ(c.cubes, b.cubes) << updates[k].second;
+    EXPECT_TRUE(checked_only.encode().bt == trees_only.encode().bt) << updates[k].second;
     EXPECT_EQ(a.incremental, k > 0) << updates[k].second;
     EXPECT_EQ(a.from_bodies, k > 0) << updates[k].second;
     EXPECT_FALSE(b.from_bodies);
@@ -230,8 +246,8 @@ TEST_F(GlobalFusionTest, DifferencesReadOffTheBinaryBodiesEqualTheTreeWalk) {
     expect_same_voxels(*with_bodies.tree(), *trees_only.tree());
     EXPECT_TRUE(with_bodies.encode().bt == trees_only.encode().bt) << updates[k].second;
   }
-  EXPECT_TRUE(with_bodies.body_of("r2") != nullptr);
-  EXPECT_TRUE(trees_only.body_of("r2") == nullptr);
+  EXPECT_TRUE(with_bodies.map_of("r2")->binary_body() != nullptr);
+  EXPECT_TRUE(trees_only.map_of("r2")->binary_body() == nullptr);
   // A body that is not the complete tree (here cut short) is not trusted: the trees are walked.
   const auto [map, body] = sent(*grown.map);
   const auto cut_short = std::make_shared<const std::vector<std::uint8_t>>(body->begin(), body->begin() + body->size() / 2);
@@ -309,7 +325,7 @@ TEST_F(GlobalFusionTest, RefusedMapsLeaveTheRobotOutAndTheOthersIntact) {
   const GlobalFuseResult bad = g.set("r3", r3.map, scaled);
   EXPECT_FALSE(bad.ok);
   EXPECT_FALSE(bad.reason.empty());
-  EXPECT_FALSE(g.set("r4", nullptr, Eigen::Matrix4d::Identity()).ok);
+  EXPECT_FALSE(g.set("r4", Tree(), Eigen::Matrix4d::Identity()).ok);
   EXPECT_EQ(g.robots(), std::vector<std::string>{"r1"});
   GlobalFusion only_r1(res);
   ASSERT_TRUE(only_r1.set("r1", r1.map, T_global(r1)).ok);

@@ -60,6 +60,28 @@ TEST_P(RealMap, BinaryRoundTripIsByteIdentical) {
   EXPECT_EQ(encode_map(*decoded.tree, Encoding::kOctomapBt), bytes);
 }
 
+TEST_P(RealMap, CheckedMapBuildsItsTreeOnlyWhenAskedAndItIsTheDecodedTree) {
+  const auto bytes = file_bytes(GetParam());
+  const CheckedMap checked = check_map(bytes, "octomap-bt", DecodeLimits{});
+  ASSERT_TRUE(checked.ok() && checked.map) << checked.reason;
+  const DecodeResult decoded = decode_bt(bytes);
+  EXPECT_FALSE(checked.map->has_tree());
+  EXPECT_EQ(checked.map->num_nodes(), decoded.num_nodes);
+  EXPECT_EQ(checked.map->resolution(), decoded.tree->getResolution());
+  ASSERT_TRUE(checked.map->binary_body() && decoded.binary_body);
+  EXPECT_TRUE(*checked.map->binary_body() == *decoded.binary_body);
+  const auto tree = checked.map->tree();
+  EXPECT_TRUE(checked.map->has_tree());
+  EXPECT_EQ(checked.map->tree(), tree);  // built once
+  EXPECT_EQ(encode_map(*tree, Encoding::kOctomapBt), bytes);
+  // A full-format payload has no binary body to keep: decoded at once.
+  const auto full = encode_map(*decoded.tree, Encoding::kOctomapOt);
+  const CheckedMap ot = check_map(full, "octomap-ot", DecodeLimits{});
+  ASSERT_TRUE(ot.ok() && ot.map) << ot.reason;
+  EXPECT_TRUE(ot.map->has_tree());
+  EXPECT_EQ(ot.map->binary_body(), nullptr);
+}
+
 TEST_P(RealMap, DecodedTreeEqualsOctomapsOwnReaderNodeForNode) {
   const auto bytes = file_bytes(GetParam());
   const DecodeResult decoded = decode_bt(bytes);
@@ -313,9 +335,13 @@ TEST(Hostile, RandomMutationsOfARealMapNeverCrashAndAreAlwaysConsistent) {
     std::uniform_int_distribution<std::size_t> where(body, bytes.size() - 1);
     for (int k = 0; k < 1 + round % 4; ++k) mutated[where(rng)] = static_cast<std::uint8_t>(rng());
     const DecodeResult r = decode_bt(mutated);
+    const CheckedMap c = check_map(mutated, "octomap-bt", DecodeLimits{});  // same verdict, no tree
+    EXPECT_EQ(c.error, r.error) << round;
     if (r.ok()) {
       ++accepted;
       EXPECT_EQ(r.tree->size(), r.num_nodes);
+      ASSERT_TRUE(c.map);
+      EXPECT_EQ(encode_map(*c.map->tree(), Encoding::kOctomapBt), encode_map(*r.tree, Encoding::kOctomapBt));
     } else {
       EXPECT_FALSE(r.reason.empty());
     }
@@ -447,6 +473,12 @@ void expect_octomap_bounds(const octomap::OcTree& tree, const std::string& what)
   EXPECT_NEAR(b.max().x(), x1, eps) << what;
   EXPECT_NEAR(b.max().y(), y1, eps) << what;
   EXPECT_NEAR(b.max().z(), z1, eps) << what;
+  // The same box read off the map's payload bytes, without building its tree.
+  const CheckedMap held = check_map(encode_map(tree, Encoding::kOctomapBt), "octomap-bt", DecodeLimits{});
+  ASSERT_TRUE(held.map) << what << ": " << held.reason;
+  const Eigen::AlignedBox3d from_body = leaf_bounds(*held.map);
+  EXPECT_FALSE(held.map->has_tree()) << what;
+  EXPECT_TRUE(from_body.min() == b.min() && from_body.max() == b.max()) << what;
 }
 
 TEST(Bounds, LeafBoundsAreOctomapsExtentOnRealMapsAndTheirParts) {

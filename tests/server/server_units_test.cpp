@@ -86,7 +86,7 @@ TEST(Registry, AnUnchangedMapOfTheSameSessionIsOnlyTouched) {
   rec.robot_id = "r1";
   rec.session_id = "a";
   rec.sequence = 1;
-  rec.tree = std::make_shared<const octomap::OcTree>(0.1);
+  rec.map = std::make_shared<const HeldMap>(std::make_shared<const octomap::OcTree>(0.1));
   rec.content_hash = 42;
   r.put_map(rec);
   const auto before = r.get("r1");
@@ -108,7 +108,7 @@ void add_robots(Registry& r, int n) {
     RobotRecord rec;
     rec.robot_id = "r" + std::to_string(i);
     rec.session_id = "a";
-    rec.tree = tree;
+    rec.map = std::make_shared<const HeldMap>(tree);
     r.put_map(rec);
   }
   r.claim_reference("r1");
@@ -189,7 +189,7 @@ TEST(Registry, RealFleetAWrongEdgeIsRejectedWithEvidenceAndARobotWithOnlyWrongEd
     RobotRecord rec;
     rec.robot_id = f.ids[i];
     rec.session_id = "a";
-    rec.tree = f.maps[i];
+    rec.map = std::make_shared<const HeldMap>(f.maps[i]);
     rec.content_hash = i + 1;
     r.put_map(rec);
     std::string error;
@@ -255,7 +255,7 @@ TEST(Registry, NewSessionDropsTheRobotsAlignments) {
     RobotRecord rec;
     rec.robot_id = id;
     rec.session_id = "a";
-    rec.tree = tree;
+    rec.map = std::make_shared<const HeldMap>(tree);
     r.put_map(rec);
   }
   r.claim_reference("r1");
@@ -264,7 +264,7 @@ TEST(Registry, NewSessionDropsTheRobotsAlignments) {
   RobotRecord rebooted;
   rebooted.robot_id = "r2";
   rebooted.session_id = "b";
-  rebooted.tree = tree;
+  rebooted.map = std::make_shared<const HeldMap>(tree);
   r.put_map(rebooted);
   EXPECT_EQ(r.status("r2"), RobotStatus::kUnknown);
   EXPECT_TRUE(r.edges().empty());
@@ -569,13 +569,17 @@ std::shared_ptr<const octomap::OcTree> small_tree(double x) {
   return t;
 }
 
+std::shared_ptr<const HeldMap> held(std::shared_ptr<const octomap::OcTree> tree) {
+  return std::make_shared<const HeldMap>(std::move(tree));
+}
+
 TEST(SyncGlobal, OneBadMapIsSkippedAndTheOthersFused) {
   Eigen::Matrix4d not_rigid = Eigen::Matrix4d::Identity();
   not_rigid(0, 0) = 2.0;  // a scale: core refuses it
-  const std::vector<PlacedMap> maps{{"r1", small_tree(0.0), Eigen::Matrix4d::Identity()},
-                                    {"r2", small_tree(1.0), not_rigid},
+  const std::vector<PlacedMap> maps{{"r1", held(small_tree(0.0)), Eigen::Matrix4d::Identity()},
+                                    {"r2", held(small_tree(1.0)), not_rigid},
                                     {"r3", nullptr, Eigen::Matrix4d::Identity()},
-                                    {"r4", small_tree(2.0), Eigen::Matrix4d::Identity()}};
+                                    {"r4", held(small_tree(2.0)), Eigen::Matrix4d::Identity()}};
   GlobalFusion fusion(0.1);
   RefusedMaps refused;
   const GlobalSync g = sync_global(fusion, maps, refused);
@@ -602,7 +606,7 @@ TEST(SyncGlobal, FusionWorkLimitLeavesNothingFused) {
   tight.max_work = 1e-9;
   GlobalFusion fusion(0.1, tight);
   RefusedMaps refused;
-  const GlobalSync tiny = sync_global(fusion, {{"r1", small_tree(0.0), Eigen::Matrix4d::Identity()}}, refused);
+  const GlobalSync tiny = sync_global(fusion, {{"r1", held(small_tree(0.0)), Eigen::Matrix4d::Identity()}}, refused);
   EXPECT_TRUE(tiny.fused.empty());
   ASSERT_EQ(tiny.skipped.size(), 1u);
   EXPECT_TRUE(fusion.empty());
@@ -617,22 +621,22 @@ RobotRecord record_of(const test::RobotMap& robot, std::uint64_t sequence) {
   r.robot_id = robot.id;
   r.session_id = "s1";
   r.sequence = sequence;
-  r.tree = robot.tree;
+  r.map = std::make_shared<const HeldMap>(robot.tree);
   r.resolution = robot.tree->getResolution();
   return r;
 }
 
-/// The record the pipeline makes of `robot`'s map sent as a `.bt` payload (tree and binary body).
+/// The record the pipeline makes of `robot`'s map sent as a `.bt` payload (its checked binary
+/// body; the tree not built).
 RobotRecord received_record_of(const test::RobotMap& robot, std::uint64_t sequence) {
   MapSample s;
   s.robot_id = s.topic_robot = robot.id;
   s.encoding = "octomap-bt";
   s.data = encode_map(*robot.tree, Encoding::kOctomapBt);
   const DecodedMap d = decode_sample(s, DecodeLimits{});
-  EXPECT_TRUE(d.tree && d.body) << d.reason;
+  EXPECT_TRUE(d.map && d.map->binary_body()) << d.reason;
   RobotRecord r = record_of(robot, sequence);
-  r.tree = d.tree;
-  r.body = d.body;
+  r.map = d.map;
   return r;
 }
 
@@ -661,11 +665,14 @@ TEST(GlobalMapBuilder, AReceivedGrownMapIsDiffedOnItsPayloadBytesAndEqualsAFresh
   pair.put_first_maps(registry, received_record_of);
   GlobalMapBuilder builder(config);
   ASSERT_TRUE(builder.build(registry, 1));
-  registry.put_map(received_record_of(pair.r2_grown, 2));
+  const RobotRecord grown = received_record_of(pair.r2_grown, 2);
+  ASSERT_FALSE(grown.map->has_tree());
+  registry.put_map(grown);
   const auto second = builder.build(registry, 2);
   ASSERT_TRUE(second);
   EXPECT_EQ(builder.last_stages().incremental, 1u);
   EXPECT_EQ(builder.last_stages().from_bodies, 1u);
+  EXPECT_FALSE(grown.map->has_tree()) << "a grown map of a known pose was decoded to be fused";
   const auto expected = GlobalMapBuilder(config).build(registry, 2);
   ASSERT_TRUE(expected);
   EXPECT_TRUE(second->data == expected->data) << "the global map diffed on bytes differs from a fresh build";

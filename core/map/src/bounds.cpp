@@ -3,6 +3,8 @@
 #include <array>
 #include <cstdint>
 
+#include "tree_scan.hpp"
+
 namespace mapmerge {
 namespace {
 
@@ -11,25 +13,35 @@ constexpr unsigned kTreeDepth = 16;
 /// The leaves' cubes as integer voxel bounds: [lo, hi) in key units at full depth.
 class BoundsWalk {
  public:
-  explicit BoundsWalk(const octomap::OcTree& tree) : tree_(tree) {}
-
-  void visit(const octomap::OcTreeNode* node, std::array<std::uint32_t, 3> corner, std::uint32_t size) {
+  void visit(const octomap::OcTree& tree, const octomap::OcTreeNode* node, std::array<std::uint32_t, 3> corner,
+             std::uint32_t size) {
     if (found_ && inside(corner, size)) return;  // cannot widen the box
-    if (!tree_.nodeHasChildren(node)) {
-      for (int a = 0; a < 3; ++a) {
-        if (!found_ || corner[a] < lo_[a]) lo_[a] = corner[a];
-        if (!found_ || corner[a] + size > hi_[a]) hi_[a] = corner[a] + size;
-      }
-      found_ = true;
+    if (!tree.nodeHasChildren(node)) {
+      add_leaf(corner, size);
       return;
     }
     const std::uint32_t half = size / 2;
     for (unsigned i = 0; i < 8; ++i) {
-      if (!tree_.nodeChildExists(node, i)) continue;
-      const std::array<std::uint32_t, 3> child{corner[0] + ((i & 1U) != 0 ? half : 0),
-                                               corner[1] + ((i & 2U) != 0 ? half : 0),
-                                               corner[2] + ((i & 4U) != 0 ? half : 0)};
-      visit(tree_.getNodeChild(node, i), child, half);  // depth <= 16: bounded recursion
+      if (!tree.nodeChildExists(node, i)) continue;
+      visit(tree, tree.getNodeChild(node, i), child_corner(corner, half, i), half);  // depth <= 16
+    }
+  }
+
+  /// The inner node whose record starts at `pos` of a validated binary body; `pos` moves past
+  /// its subtree. Every byte is read (a subtree's length is known only by reading it).
+  void visit(const std::vector<std::uint8_t>& body, std::size_t& pos, std::array<std::uint32_t, 3> corner,
+             std::uint32_t size) {
+    const std::uint8_t* record = body.data() + pos;
+    pos += 2;
+    const std::uint32_t half = size / 2;
+    for (unsigned i = 0; i < 8; ++i) {
+      const unsigned code = detail::binary_child_code(record, i);
+      if (code == 0) continue;
+      if (code == 3) {
+        visit(body, pos, child_corner(corner, half, i), half);  // validated: depth <= 16
+      } else if (!found_ || !inside(child_corner(corner, half, i), half)) {
+        add_leaf(child_corner(corner, half, i), half);
+      }
     }
   }
 
@@ -45,6 +57,20 @@ class BoundsWalk {
   }
 
  private:
+  static std::array<std::uint32_t, 3> child_corner(const std::array<std::uint32_t, 3>& corner, std::uint32_t half,
+                                                   unsigned i) {
+    return {corner[0] + ((i & 1U) != 0 ? half : 0), corner[1] + ((i & 2U) != 0 ? half : 0),
+            corner[2] + ((i & 4U) != 0 ? half : 0)};
+  }
+
+  void add_leaf(const std::array<std::uint32_t, 3>& corner, std::uint32_t size) {
+    for (int a = 0; a < 3; ++a) {
+      if (!found_ || corner[a] < lo_[a]) lo_[a] = corner[a];
+      if (!found_ || corner[a] + size > hi_[a]) hi_[a] = corner[a] + size;
+    }
+    found_ = true;
+  }
+
   bool inside(const std::array<std::uint32_t, 3>& corner, std::uint32_t size) const {
     for (int a = 0; a < 3; ++a) {
       if (corner[a] < lo_[a] || corner[a] + size > hi_[a]) return false;
@@ -52,7 +78,6 @@ class BoundsWalk {
     return true;
   }
 
-  const octomap::OcTree& tree_;
   std::array<std::uint32_t, 3> lo_{}, hi_{};
   bool found_ = false;
 };
@@ -60,9 +85,18 @@ class BoundsWalk {
 }  // namespace
 
 Eigen::AlignedBox3d leaf_bounds(const octomap::OcTree& tree) {
-  BoundsWalk walk(tree);
-  if (tree.getRoot() != nullptr) walk.visit(tree.getRoot(), {0, 0, 0}, 1U << kTreeDepth);
+  BoundsWalk walk;
+  if (tree.getRoot() != nullptr) walk.visit(tree, tree.getRoot(), {0, 0, 0}, 1U << kTreeDepth);
   return walk.box(tree.getResolution());
+}
+
+Eigen::AlignedBox3d leaf_bounds(const HeldMap& map) {
+  const auto& body = map.binary_body();
+  if (map.has_tree() || !body) return leaf_bounds(*map.tree());
+  BoundsWalk walk;
+  std::size_t pos = 0;
+  if (body->size() >= 2) walk.visit(*body, pos, {0, 0, 0}, 1U << kTreeDepth);
+  return walk.box(map.resolution());
 }
 
 }  // namespace mapmerge

@@ -5,6 +5,7 @@
 #include <cstdint>
 #include <cstdio>
 #include <cstring>
+#include <memory>
 #include <optional>
 #include <string>
 #include <string_view>
@@ -59,6 +60,9 @@ std::optional<DecodeResult> parse_header(const std::uint8_t* data, std::size_t s
 /// Inflates zstd frame(s) into `out`, never past limits.max_bytes. Returns the rejection, if any.
 std::optional<DecodeResult> inflate(const std::uint8_t* data, std::size_t size,
                                     const DecodeLimits& limits, std::vector<std::uint8_t>& out);
+
+/// The octree of a binary body that passed decode_body()'s pre-pass (never for unchecked bytes).
+std::unique_ptr<octomap::OcTree> build_checked_binary_tree(double res, const std::vector<std::uint8_t>& body);
 
 /// Compresses `raw` into one zstd frame with content size and checksum. Throws MapError.
 std::vector<std::uint8_t> deflate(const std::vector<std::uint8_t>& raw, int level);

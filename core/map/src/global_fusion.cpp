@@ -111,14 +111,16 @@ class TreeDiff {
 /// their ends.
 class BodyDiff {
  public:
-  BodyDiff(const std::vector<std::uint8_t>& before, const octomap::OcTree& before_tree,
-           const std::vector<std::uint8_t>& after, const octomap::OcTree& after_tree, double target_res,
-           const FuseConfig& config)
-      : a_(before), b_(after), after_(after_tree), target_res_(target_res), config_(config) {
-    ea_[kFree] = evidence(before_tree.getClampingThresMinLog(), config);
-    ea_[kOccupied] = evidence(before_tree.getClampingThresMaxLog(), config);
-    eb_[kFree] = evidence(after_tree.getClampingThresMinLog(), config);
-    eb_[kOccupied] = evidence(after_tree.getClampingThresMaxLog(), config);
+  BodyDiff(const HeldMap& before, const HeldMap& after, double target_res, const FuseConfig& config)
+      : a_(*before.binary_body()),
+        b_(*after.binary_body()),
+        resolution_(after.resolution()),
+        target_res_(target_res),
+        config_(config) {
+    ea_[kFree] = evidence(before.free_log_odds(), config);
+    ea_[kOccupied] = evidence(before.occupied_log_odds(), config);
+    eb_[kFree] = evidence(after.free_log_odds(), config);
+    eb_[kOccupied] = evidence(after.occupied_log_odds(), config);
   }
 
   /// False when a body is not a complete tree (not what decode_map validated): then nothing
@@ -157,16 +159,23 @@ class BodyDiff {
   /// A leaf (or unknown space) of the new map at `depth`: its fusion work.
   void count(unsigned c, unsigned depth) {
     if (c == kOccupied || (c == kFree && config_.fuse_free)) {
-      work += detail::leaf_fusion_work(std::max(1.0, std::ceil(after_.getNodeSize(depth) / target_res_)));
+      work += detail::leaf_fusion_work(std::max(1.0, std::ceil(node_size(depth) / target_res_)));
     }
+  }
+  /// OcTree::getNodeSize and OcTree::keyToCoord(key, depth) of the new map's grid.
+  double node_size(unsigned depth) const { return std::ldexp(resolution_, static_cast<int>(kTreeDepth - depth)); }
+  double coord(octomap::key_type key, unsigned depth) const {
+    if (depth == 0) return 0.0;
+    const double k = static_cast<double>(key) - 32768.0;
+    if (depth == kTreeDepth) return (k + 0.5) * resolution_;
+    return (std::floor(k / static_cast<double>(1U << (kTreeDepth - depth))) + 0.5) * node_size(depth);
   }
   /// Two uniform values over the node at (key, depth): a cube where their evidence differs.
   void compare(unsigned ca, unsigned cb, const octomap::OcTreeKey& key, unsigned depth) {
     const std::int64_t ea = ca == kUnknown ? 0 : ea_[ca], eb = cb == kUnknown ? 0 : eb_[cb];
     if (ea == eb) return;
-    cubes.push_back({Eigen::Vector3d(after_.keyToCoord(key[0], depth), after_.keyToCoord(key[1], depth),
-                                     after_.keyToCoord(key[2], depth)),
-                     after_.getNodeSize(depth), eb - ea});
+    cubes.push_back({Eigen::Vector3d(coord(key[0], depth), coord(key[1], depth), coord(key[2], depth)),
+                     node_size(depth), eb - ea});
   }
   /// Both maps have an inner node at (key, depth), at pa and pb.
   void both(std::size_t& pa, std::size_t& pb, const octomap::OcTreeKey& key, unsigned depth) {
@@ -213,7 +222,7 @@ class BodyDiff {
 
   const std::vector<std::uint8_t>& a_;
   const std::vector<std::uint8_t>& b_;
-  const octomap::OcTree& after_;
+  double resolution_;
   double target_res_;
   const FuseConfig& config_;
   std::int64_t ea_[3] = {0, 0, 0};
@@ -245,7 +254,7 @@ std::vector<std::string> GlobalFusion::robots() const {
   return out;
 }
 
-bool GlobalFusion::holds(const std::string& robot, const octomap::OcTree* map,
+bool GlobalFusion::holds(const std::string& robot, const HeldMap* map,
                          const Eigen::Matrix4d& T) const {
   const auto it = robots_.find(robot);
   return it != robots_.end() && it->second.map.get() == map && it->second.T_global_robot == T;
@@ -257,20 +266,16 @@ std::optional<Eigen::Matrix4d> GlobalFusion::pose_of(const std::string& robot) c
   return it->second.T_global_robot;
 }
 
-std::shared_ptr<const octomap::OcTree> GlobalFusion::map_of(const std::string& robot) const {
+std::shared_ptr<const HeldMap> GlobalFusion::map_of(const std::string& robot) const {
   const auto it = robots_.find(robot);
   return it == robots_.end() ? nullptr : it->second.map;
-}
-
-std::shared_ptr<const std::vector<std::uint8_t>> GlobalFusion::body_of(const std::string& robot) const {
-  const auto it = robots_.find(robot);
-  return it == robots_.end() ? nullptr : it->second.body;
 }
 
 std::size_t GlobalFusion::memory_usage() const { return sums_->memoryUsage(); }
 
 void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stats) {
-  const octomap::OcTree& map = *entry.map;
+  const std::shared_ptr<const octomap::OcTree> tree = entry.map->tree();
+  const octomap::OcTree& map = *tree;
   const Eigen::Matrix4d& T = entry.T_global_robot;
   FuseResult counts;
   SumSink sink{*sums_};
@@ -301,8 +306,8 @@ bool GlobalFusion::add_difference(const Entry& before, const Entry& after, Globa
   std::vector<ChangedCube> cubes;
   double work = 0.0;
   bool done = false;
-  if (before.body && after.body) {
-    BodyDiff diff(*before.body, *before.map, *after.body, *after.map, resolution_, config_);
+  if (before.map->binary_body() && after.map->binary_body()) {
+    BodyDiff diff(*before.map, *after.map, resolution_, config_);
     if (diff.run()) {
       cubes = std::move(diff.cubes);
       work = diff.work;
@@ -310,7 +315,8 @@ bool GlobalFusion::add_difference(const Entry& before, const Entry& after, Globa
     }
   }
   if (!done) {
-    TreeDiff diff(*before.map, *after.map, resolution_, config_);
+    const auto a = before.map->tree(), b = after.map->tree();
+    TreeDiff diff(*a, *b, resolution_, config_);
     diff.run();
     cubes = std::move(diff.cubes);
     work = diff.work;
@@ -331,30 +337,35 @@ bool GlobalFusion::add_difference(const Entry& before, const Entry& after, Globa
   return true;
 }
 
-GlobalFuseResult GlobalFusion::set(const std::string& robot,
-                                   std::shared_ptr<const octomap::OcTree> map,
+GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<const octomap::OcTree> map,
                                    const Eigen::Matrix4d& T_global_robot,
                                    std::shared_ptr<const std::vector<std::uint8_t>> binary_body) {
+  return set(robot, map ? std::make_shared<const HeldMap>(std::move(map), std::move(binary_body)) : nullptr,
+             T_global_robot);
+}
+
+GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<const HeldMap> map,
+                                   const Eigen::Matrix4d& T_global_robot) {
   GlobalFuseResult r;
   r.reason = map ? detail::check_rigid(T_global_robot, config_.rigid_tolerance) : "no map";
   if (!r.reason.empty()) {
     remove(robot);
     return r;
   }
-  Entry next{std::move(map), T_global_robot, std::move(binary_body)};
+  Entry next{std::move(map), T_global_robot};
   const auto it = robots_.find(robot);
   if (it != robots_.end() && it->second.map == next.map && it->second.T_global_robot == T_global_robot) {
     r.ok = true;
     return r;
   }
   const bool same_grid = it != robots_.end() && it->second.T_global_robot == T_global_robot &&
-                         it->second.map->getResolution() == next.map->getResolution() &&
-                         next.map->getResolution() >= resolution_ * (1 - 1e-9);
+                         it->second.map->resolution() == next.map->resolution() &&
+                         next.map->resolution() >= resolution_ * (1 - 1e-9);
   if (same_grid) {
     r.ok = add_difference(it->second, next, r);
     r.incremental = r.ok;
   } else {
-    const double work = detail::estimate_work(*next.map, resolution_, config_.fuse_free);
+    const double work = detail::estimate_work(*next.map->tree(), resolution_, config_.fuse_free);
     r.work = work;
     r.ok = work <= config_.max_work;
     if (!r.ok) {

@@ -209,7 +209,11 @@ Provenance provenance_of(const std::vector<NamedMap>& maps, double resolution) {
 
 Provenance GlobalFusion::provenance() const {
   std::vector<NamedMap> maps;
-  for (const auto& [robot, entry] : robots_) maps.push_back(NamedMap{robot, entry.map.get(), entry.T_global_robot});
+  std::vector<std::shared_ptr<const octomap::OcTree>> trees;  // built here if not yet
+  for (const auto& [robot, entry] : robots_) {
+    trees.push_back(entry.map->tree());
+    maps.push_back(NamedMap{robot, trees.back().get(), entry.T_global_robot});
+  }
   return provenance_of(maps, resolution_);
 }
 

@@ -96,8 +96,10 @@ std::optional<DecodeResult> check_id_and_resolution(std::string_view id, double 
   return std::nullopt;
 }
 
+/// With `build_tree` false a binary body is only checked: the result holds the body, no tree.
 DecodeResult decode_body(double res, bool binary, const std::uint8_t* body, std::size_t size,
-                         std::optional<std::uint64_t> claimed_nodes, const DecodeLimits& limits) {
+                         std::optional<std::uint64_t> claimed_nodes, const DecodeLimits& limits,
+                         bool build_tree = true) {
   const detail::TreeScan scan = binary ? detail::scan_binary_body(body, size, limits.max_nodes)
                                        : detail::scan_full_body(body, size, limits.max_nodes);
   if (scan.error != DecodeError::kNone) return rejected(scan.error, scan.reason);
@@ -124,6 +126,11 @@ DecodeResult decode_body(double res, bool binary, const std::uint8_t* body, std:
     return result;
   }
   bool read_ok = true;
+  if (binary && !build_tree) {
+    result.binary_body = std::make_shared<const std::vector<std::uint8_t>>(body, body + size);
+    result.num_nodes = scan.num_nodes;
+    return result;
+  }
   if (binary) {
     result.tree = std::make_unique<BinaryBodyTree>(res, body, size);
     result.binary_body = std::make_shared<const std::vector<std::uint8_t>>(body, body + size);
@@ -144,7 +151,7 @@ DecodeResult decode_body(double res, bool binary, const std::uint8_t* body, std:
 }
 
 DecodeResult decode_file_bytes(const std::uint8_t* data, std::size_t size, bool binary,
-                               const DecodeLimits& limits) {
+                               const DecodeLimits& limits, bool build_tree = true, double* res_out = nullptr) {
   if (auto too_large = check_size(size, limits, "payload")) return std::move(*too_large);
   const Encoding encoding = binary ? Encoding::kOctomapBt : Encoding::kOctomapOt;
   if (is_zstd(data, size)) {
@@ -168,11 +175,33 @@ DecodeResult decode_file_bytes(const std::uint8_t* data, std::size_t size, bool 
                                                              : std::to_string(header.size)) +
                         " nodes, limit " + std::to_string(limits.max_nodes));
   }
+  if (res_out != nullptr) *res_out = header.res;
   return decode_body(header.res, binary, data + header.body_offset, size - header.body_offset,
-                     header.size, limits);
+                     header.size, limits, build_tree);
+}
+
+/// What check_map() keeps of a decode_body() result.
+CheckedMap to_checked(DecodeResult r, double res) {
+  CheckedMap out;
+  out.error = r.error;
+  out.reason = std::move(r.reason);
+  out.empty = r.empty;
+  if (!r.ok() || r.empty) return out;
+  out.map = r.tree ? std::make_shared<const HeldMap>(std::shared_ptr<const octomap::OcTree>(std::move(r.tree)),
+                                                     std::move(r.binary_body))
+                   : detail::held_checked_body(res, std::move(r.binary_body), r.num_nodes);
+  return out;
 }
 
 }  // namespace
+
+namespace detail {
+
+std::unique_ptr<octomap::OcTree> build_checked_binary_tree(double res, const std::vector<std::uint8_t>& body) {
+  return std::make_unique<BinaryBodyTree>(res, body.data(), body.size());
+}
+
+}  // namespace detail
 
 const char* to_string(Encoding encoding) {
   switch (encoding) {
@@ -288,6 +317,38 @@ std::vector<std::uint8_t> encode_tree_body(const octomap::OcTree& tree, bool bin
   if (!out) throw MapError("cannot serialise the octree body");
   const std::string raw = out.str();
   return {raw.begin(), raw.end()};
+}
+
+CheckedMap check_map(const std::uint8_t* data, std::size_t size, Encoding encoding, const DecodeLimits& limits) {
+  double res = 0.0;  // the header's, set by decode_file_bytes
+  switch (encoding) {
+    case Encoding::kOctomapBt: {
+      DecodeResult r = decode_file_bytes(data, size, true, limits, false, &res);
+      return to_checked(std::move(r), res);
+    }
+    case Encoding::kOctomapOt: return to_checked(decode_file_bytes(data, size, false, limits), res);
+    case Encoding::kOctomapBtZstd: {
+      if (auto too_large = check_size(size, limits, "compressed payload")) return to_checked(std::move(*too_large), res);
+      std::vector<std::uint8_t> raw;
+      if (auto bad = detail::inflate(data, size, limits, raw)) return to_checked(std::move(*bad), res);
+      DecodeResult r = decode_file_bytes(raw.data(), raw.size(), true, limits, false, &res);
+      return to_checked(std::move(r), res);
+    }
+  }
+  return to_checked(rejected(DecodeError::kUnknownEncoding, "unknown encoding value"), res);
+}
+
+CheckedMap check_map(const std::vector<std::uint8_t>& bytes, std::string_view encoding, const DecodeLimits& limits) {
+  const std::optional<Encoding> parsed = parse_encoding(encoding);
+  if (!parsed) return to_checked(decode_map(bytes, encoding, limits), 0.0);  // the same rejection
+  return check_map(bytes.data(), bytes.size(), *parsed, limits);
+}
+
+CheckedMap check_tree_body(std::string_view id, double resolution, bool binary, const std::vector<std::uint8_t>& data,
+                           const DecodeLimits& limits) {
+  if (auto too_large = check_size(data.size(), limits, "tree body")) return to_checked(std::move(*too_large), resolution);
+  if (auto bad = check_id_and_resolution(id, resolution, limits)) return to_checked(std::move(*bad), resolution);
+  return to_checked(decode_body(resolution, binary, data.data(), data.size(), std::nullopt, limits, false), resolution);
 }
 
 }  // namespace mapmerge

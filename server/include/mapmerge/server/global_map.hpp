@@ -55,16 +55,16 @@ class GlobalMapBuilder {
   std::vector<PlacedMap> placed_maps(const Registry& registry, std::vector<Contribution>& contributors);
   const ServerConfig& config_;
   std::unique_ptr<GlobalFusion> fusion_;
-  const Eigen::AlignedBox3d& extent(const std::string& robot, const std::shared_ptr<const octomap::OcTree>& tree);
+  const Eigen::AlignedBox3d& extent(const std::string& robot, const std::shared_ptr<const HeldMap>& map);
   /// When some maps only grew and others must be fused whole (new robot, new pose), keeps the
   /// latter as fused for this build, so grown maps reach the fleet first; true if it did.
   bool defer_moves(std::vector<PlacedMap>& maps, std::vector<Contribution>& contributors);
   RefusedMaps refused_;
   std::map<std::string, Contribution> fused_contributions_;  ///< per robot: the map version fused
   bool deferred_ = false;
-  std::map<std::string, std::pair<std::weak_ptr<const octomap::OcTree>, Eigen::AlignedBox3d>> extents_;  ///< per robot
+  std::map<std::string, std::pair<std::weak_ptr<const HeldMap>, Eigen::AlignedBox3d>> extents_;  ///< per robot
   Stages stages_;
-  std::vector<std::shared_ptr<const void>> replaced_;  ///< maps and bodies the last build replaced
+  std::vector<std::shared_ptr<const HeldMap>> replaced_;  ///< maps the last build replaced
 };
 
 /// One pose per robot known to the registry.

@@ -21,13 +21,13 @@
 namespace mapmerge::server {
 
 struct DecodedMap {
-  std::shared_ptr<const octomap::OcTree> tree;  ///< null when rejected
-  std::shared_ptr<const std::vector<std::uint8_t>> body;  ///< the binary body it was read from (null for `.ot`)
-  std::string reason;                           ///< why rejected
+  std::shared_ptr<const HeldMap> map;  ///< null when rejected
+  std::string reason;                  ///< why rejected
 };
 
-/// Validates and decodes a received map (native payload or ROS 2 tree body); a robot id that
-/// does not match its topic is rejected too.
+/// Validates a received map (native payload or ROS 2 tree body) as decoding does, without
+/// building the tree of a binary body (HeldMap builds it when needed); a robot id that does not
+/// match its topic is rejected too.
 DecodedMap decode_sample(const MapSample& sample, const DecodeLimits& limits);
 
 /// Alignment features of a map (sharing the tree, not copying it); null with `error` set for a
@@ -57,9 +57,8 @@ double estimate_overlap(const octomap::OcTree& target, const octomap::OcTree& so
 /// One robot's map with its pose in the global frame.
 struct PlacedMap {
   std::string robot;                 ///< robot id (for skip reports)
-  std::shared_ptr<const octomap::OcTree> tree;
+  std::shared_ptr<const HeldMap> map;
   Eigen::Matrix4d T_global_robot = Eigen::Matrix4d::Identity();
-  std::shared_ptr<const std::vector<std::uint8_t>> body{};  ///< tree's binary body, or null (GlobalFusion::set)
 };
 
 /// Whether `after` is more than `translation` [m] or `rotation_deg` [deg] away from `before`.
@@ -76,7 +75,7 @@ struct GlobalSync {
 };
 
 /// Robot -> the map and pose a fusion refused: not tried again until either changes.
-using RefusedMaps = std::map<std::string, std::pair<std::weak_ptr<const octomap::OcTree>, Eigen::Matrix4d>>;
+using RefusedMaps = std::map<std::string, std::pair<std::weak_ptr<const HeldMap>, Eigen::Matrix4d>>;
 
 /// Brings `fusion` to exactly `maps`: robots not listed are taken out, a robot whose map or pose
 /// changed is updated (only the difference of its map when the pose is the same). A map that core

@@ -16,6 +16,7 @@
 
 #include "mapmerge/align/align.hpp"
 #include "mapmerge/graph/pose_graph.hpp"
+#include "mapmerge/map/held_map.hpp"
 #include "mapmerge/server/pose_graph.hpp"
 
 namespace mapmerge::server {
@@ -30,9 +31,9 @@ struct RobotRecord {
   std::string frame_id;              ///< the robot's map frame
   double resolution = 0.0;           ///< [m]
   double received_unix = 0.0;        ///< arrival time of the map held [s since epoch]
-  std::shared_ptr<const octomap::OcTree> tree;             ///< null until a map was accepted
-  std::shared_ptr<const std::vector<std::uint8_t>> body;   ///< binary body `tree` was read from (null for `.ot`)
-  std::shared_ptr<const align::PreparedMap> prepared;      ///< alignment features of `tree`
+  std::shared_ptr<const HeldMap> map;                  ///< null until a map was accepted; its tree
+                                                       ///< is built when an alignment needs it
+  std::shared_ptr<const align::PreparedMap> prepared;  ///< alignment features of `map`
   std::uint64_t map_revision = 0;    ///< counts accepted maps of this robot (in memory)
   std::size_t content_hash = 0;      ///< hash of the payload bytes of the map held
   std::set<std::string> tried;       ///< robots a global search of this revision already failed against

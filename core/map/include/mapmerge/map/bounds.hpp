@@ -4,6 +4,8 @@
 #include <Eigen/Geometry>
 #include <octomap/OcTree.h>
 
+#include "mapmerge/map/held_map.hpp"
+
 namespace mapmerge {
 
 /// The box [m] spanned by the leaves of `tree`, occupied and free, each leaf counted with its
@@ -12,5 +14,9 @@ namespace mapmerge {
 /// where OctoMap's const versions iterate over all leaves, once for each call. An empty box for
 /// an empty tree.
 Eigen::AlignedBox3d leaf_bounds(const octomap::OcTree& tree);
+
+/// The same box for a held map, read off its binary body when its tree is not built (one pass
+/// over the bytes; the tree is not built).
+Eigen::AlignedBox3d leaf_bounds(const HeldMap& map);
 
 }  // namespace mapmerge

@@ -24,6 +24,7 @@
 #include <octomap/OcTree.h>
 
 #include "mapmerge/map/fusion.hpp"
+#include "mapmerge/map/held_map.hpp"
 #include "mapmerge/map/provenance.hpp"
 
 namespace mapmerge {
@@ -70,9 +71,14 @@ class GlobalFusion {
   /// Puts `robot`'s map at `T_global_robot` into the global map, replacing what it contributed
   /// before. The map is held (shared, never modified) to compute the next update's difference.
   /// A refused map (not rigid, too much work, null) takes the robot out of the global map.
-  /// `binary_body`: the validated binary body `map` was decoded from (DecodeResult::binary_body),
-  /// or null. When the held map has one too, a grown map's difference is read off the two bodies
-  /// (one pass over bytes, several times faster than walking both trees); same result.
+  /// When the held map and the new one both have a binary body (HeldMap::binary_body), a grown
+  /// map's difference is read off the two bodies (one pass over bytes, several times faster than
+  /// walking both trees, same result) and neither map's tree is built; a new pose or resolution
+  /// needs the trees (HeldMap::tree builds them).
+  GlobalFuseResult set(const std::string& robot, std::shared_ptr<const HeldMap> map,
+                       const Eigen::Matrix4d& T_global_robot);
+  /// The same for a decoded map; `binary_body`: the validated body it was decoded from
+  /// (DecodeResult::binary_body), or null.
   GlobalFuseResult set(const std::string& robot, std::shared_ptr<const octomap::OcTree> map,
                        const Eigen::Matrix4d& T_global_robot,
                        std::shared_ptr<const std::vector<std::uint8_t>> binary_body = nullptr);
@@ -80,13 +86,11 @@ class GlobalFusion {
   void remove(const std::string& robot);
 
   /// Whether `robot` is fused with exactly this map and pose (nothing to do for set()).
-  bool holds(const std::string& robot, const octomap::OcTree* map, const Eigen::Matrix4d& T) const;
+  bool holds(const std::string& robot, const HeldMap* map, const Eigen::Matrix4d& T) const;
   /// The pose `robot` is fused with (nullopt for a robot not fused).
   std::optional<Eigen::Matrix4d> pose_of(const std::string& robot) const;
   /// The map `robot` is fused with (null for a robot not fused).
-  std::shared_ptr<const octomap::OcTree> map_of(const std::string& robot) const;
-  /// The binary body given with that map (null if none was given).
-  std::shared_ptr<const std::vector<std::uint8_t>> body_of(const std::string& robot) const;
+  std::shared_ptr<const HeldMap> map_of(const std::string& robot) const;
   /// Robots in the global map, sorted.
   std::vector<std::string> robots() const;
   double resolution() const { return resolution_; }
@@ -117,9 +121,8 @@ class GlobalFusion {
 
  private:
   struct Entry {
-    std::shared_ptr<const octomap::OcTree> map;
+    std::shared_ptr<const HeldMap> map;
     Eigen::Matrix4d T_global_robot;
-    std::shared_ptr<const std::vector<std::uint8_t>> body;  ///< map's binary body, or null
   };
   void add_full(const Entry& entry, int sign, GlobalFuseResult& stats);
   bool add_difference(const Entry& before, const Entry& after, GlobalFuseResult& stats);

@@ -16,6 +16,8 @@
 
 #include <octomap/OcTree.h>
 
+#include "mapmerge/map/held_map.hpp"
+
 namespace mapmerge {
 
 /// How a map is serialised in a payload. The strings are what travels in the message's
@@ -119,5 +121,23 @@ DecodeResult decode_tree_body(std::string_view id, double resolution, bool binar
 
 /// The bare body for an octomap_msgs/Octomap message (binary: writeBinaryData; else writeData).
 std::vector<std::uint8_t> encode_tree_body(const octomap::OcTree& tree, bool binary);
+
+/// A payload validated as decode_map() validates it, kept undecoded where it can be (HeldMap).
+struct CheckedMap {
+  std::shared_ptr<const HeldMap> map;  ///< the map; null when rejected or empty
+  DecodeError error = DecodeError::kNone;
+  std::string reason;  ///< one line for the log; empty when accepted
+  bool empty = false;  ///< accepted, but the map holds no nodes
+  bool ok() const { return error == DecodeError::kNone; }
+};
+
+/// decode_map()'s checks, accepting and rejecting exactly the same payloads, without building
+/// the tree of a binary body (octomap-bt, octomap-bt+zstd): the HeldMap builds it on first use.
+/// A full (`.ot`) body is decoded at once (it has no binary body to keep). O(bytes).
+CheckedMap check_map(const std::uint8_t* data, std::size_t size, Encoding encoding, const DecodeLimits& limits);
+CheckedMap check_map(const std::vector<std::uint8_t>& bytes, std::string_view encoding, const DecodeLimits& limits);
+/// decode_tree_body()'s checks, the same way (binary ROS 2 bodies are kept undecoded).
+CheckedMap check_tree_body(std::string_view id, double resolution, bool binary, const std::vector<std::uint8_t>& data,
+                           const DecodeLimits& limits);
 
 }  // namespace mapmerge

@@ -1,0 +1,68 @@
+#pragma once
+/// A received map kept as the bytes it came in, decoded to an octree only when something needs
+/// one.
+///
+/// A robot's update is most often only fused by difference (GlobalFusion reads that off the
+/// binary bodies of the old and the new map) and published: building its OcTree (~100 ms and
+/// ~57 B of RAM per node for a Freiburg-size map, ~60x the payload) can wait for the alignment
+/// that needs one, off the update's path.
+
+#include <atomic>
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <vector>
+
+#include <octomap/OcTree.h>
+
+namespace mapmerge {
+
+class HeldMap;
+
+namespace detail {
+/// A HeldMap over a binary body that passed decode's pre-pass (internal to the codec: only bytes
+/// so checked may be built into a tree).
+std::shared_ptr<const HeldMap> held_checked_body(double resolution,
+                                                 std::shared_ptr<const std::vector<std::uint8_t>> body,
+                                                 std::size_t num_nodes);
+}  // namespace detail
+
+/// An immutable map: an OcTree, its validated binary body (OcTree::writeBinaryData's bytes), or
+/// both. tree() builds the octree from the body on first use, once, and keeps it; safe to call
+/// from several threads.
+class HeldMap {
+ public:
+  /// A decoded map, with the binary body it was read from when known (null for `.ot` bodies).
+  explicit HeldMap(std::shared_ptr<const octomap::OcTree> tree,
+                   std::shared_ptr<const std::vector<std::uint8_t>> binary_body = nullptr);
+
+  double resolution() const { return resolution_; }
+  std::size_t num_nodes() const { return num_nodes_; }  ///< inner + leaves
+  /// The validated binary body (null for a map decoded from a full `.ot` body).
+  const std::shared_ptr<const std::vector<std::uint8_t>>& binary_body() const { return body_; }
+  /// Log-odds a free and an occupied leaf of the body stand for (the tree's clamping bounds).
+  float free_log_odds() const { return free_log_odds_; }
+  float occupied_log_odds() const { return occupied_log_odds_; }
+
+  /// The octree, built from the body on the first call (O(nodes)); never null.
+  std::shared_ptr<const octomap::OcTree> tree() const;
+  /// Whether tree() has been built (a test of laziness; the answer may be stale at once).
+  bool has_tree() const;
+
+ private:
+  friend std::shared_ptr<const HeldMap> detail::held_checked_body(double, std::shared_ptr<const std::vector<std::uint8_t>>,
+                                                                  std::size_t);
+  HeldMap(double resolution, std::shared_ptr<const std::vector<std::uint8_t>> body, std::size_t num_nodes);
+
+  double resolution_;
+  std::size_t num_nodes_;
+  std::shared_ptr<const std::vector<std::uint8_t>> body_;
+  float free_log_odds_;
+  float occupied_log_odds_;
+  mutable std::once_flag built_;
+  mutable std::shared_ptr<const octomap::OcTree> tree_;
+  mutable std::atomic<bool> built_flag_{false};
+};
+
+}  // namespace mapmerge
