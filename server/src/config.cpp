@@ -45,7 +45,7 @@ void read_network(const YAML::Node& n, NetworkConfig& c) {
 
 void read_merge(const YAML::Node& n, MergeConfig& c) {
   check_keys(n, "merge", {"threads", "reference", "global_frame", "global_resolution", "refine_known",
-                          "search_blocks_fallback",
+                          "refine_min_change", "search_blocks_fallback",
                           "refine_republish_translation", "refine_republish_rotation_deg", "extra_pairs",
                           "extra_min_overlap", "extra_overlap_samples", "extra_global_fallback", "extra_max_jobs",
                           "keep_lost_maps", "session_conflict_hold_s"});
@@ -54,6 +54,7 @@ void read_merge(const YAML::Node& n, MergeConfig& c) {
   read(n, "global_frame", c.global_frame, "merge");
   read(n, "global_resolution", c.global_resolution, "merge");
   read(n, "refine_known", c.refine_known, "merge");
+  read(n, "refine_min_change", c.refine_min_change, "merge");
   read(n, "search_blocks_fallback", c.search_blocks_fallback, "merge");
   read(n, "refine_republish_translation", c.refine_republish_translation, "merge");
   read(n, "refine_republish_rotation_deg", c.refine_republish_rotation_deg, "merge");
@@ -96,6 +97,9 @@ void check(const ServerConfig& c) {
   if (c.network.domain < 0 || c.network.domain > 101) throw ConfigError("network.domain must be in 0..101");
   if (c.merge.threads < 1 || c.merge.threads > 256) throw ConfigError("merge.threads must be in 1..256");
   if (c.merge.global_resolution < 0.0) throw ConfigError("merge.global_resolution must be >= 0");
+  if (!(c.merge.refine_min_change >= 0.0 && c.merge.refine_min_change <= 1.0)) {
+    throw ConfigError("merge.refine_min_change must be in 0..1");
+  }
   if (!(c.merge.extra_min_overlap >= 0.0 && c.merge.extra_min_overlap <= 1.0)) {
     throw ConfigError("merge.extra_min_overlap must be in 0..1");
   }

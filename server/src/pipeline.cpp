@@ -231,15 +231,39 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
   }
 }
 
+bool Pipeline::worth_refining(const Edge& edge) {
+  const auto target = registry_.get(edge.target), source = registry_.get(edge.source);
+  if (!target || !target->map || !source || !source->map) return false;
+  std::lock_guard<std::mutex> lock(alignment_mutex_);
+  const auto basis = edge_basis_.find({edge.target, edge.source});
+  if (basis == edge_basis_.end()) return true;  // aligned before a restart: not known
+  const auto changed = [&](std::size_t now, std::size_t then) {
+    const double d = std::abs(static_cast<double>(now) - static_cast<double>(then));
+    return d > 0.0 && d >= config_.merge.refine_min_change * static_cast<double>(std::max<std::size_t>(then, 1));
+  };
+  return changed(target->map->num_nodes(), basis->second.first) ||
+         changed(source->map->num_nodes(), basis->second.second);
+}
+
 bool Pipeline::refine_known(const RobotRecord& rec) {
+  // The robot's own links to the group: edges where its map is the source. Edges of robots
+  // aligned to it keep their transform (a growing map does not move its frame).
+  std::vector<Edge> edges;
+  for (const Edge& e : registry_.edges_of(rec.robot_id)) {
+    if (e.source != rec.robot_id) continue;
+    if (worth_refining(e)) {
+      edges.push_back(e);
+    } else {
+      spdlog::debug("merge {} <- {}: maps changed by less than {:.0f}% since aligned: not refined", e.target,
+                    e.source, config_.merge.refine_min_change * 100.0);
+    }
+  }
+  if (edges.empty()) return false;
   const auto me = prepared(rec.robot_id, false);
   if (!me) return false;
   bool moved = false;
   bool refined = false;
-  // The robot's own links to the group: edges where its map is the source. Edges of robots
-  // aligned to it keep their transform (a growing map does not move its frame).
-  for (const Edge& e : registry_.edges_of(rec.robot_id)) {
-    if (e.source != rec.robot_id) continue;
+  for (const Edge& e : edges) {
     const auto target = prepared(e.target, false);
     if (!target) continue;
     spdlog::debug("merge {} <- {}: refinement started", e.target, e.source);
@@ -283,6 +307,10 @@ void Pipeline::accept_edge(const Edge& edge) {
     }
   }
   registry_.put_edge(edge);
+  const auto target = registry_.get(edge.target), source = registry_.get(edge.source);
+  if (target && target->map && source && source->map) {
+    edge_basis_[{edge.target, edge.source}] = {target->map->num_nodes(), source->map->num_nodes()};
+  }
 }
 
 void Pipeline::store_edges_without(const std::string& robot) {

@@ -20,6 +20,7 @@
 #include "mapmerge/server/export.hpp"
 #include "mapmerge/server/global_map.hpp"
 #include "mapmerge/server/merge_ops.hpp"
+#include "mapmerge/server/pipeline.hpp"
 #include "mapmerge/server/pose_graph.hpp"
 #include "mapmerge/server/registry.hpp"
 #include "mapmerge/server/scheduler.hpp"
@@ -676,6 +677,57 @@ TEST(GlobalMapBuilder, AReceivedGrownMapIsDiffedOnItsPayloadBytesAndEqualsAFresh
   const auto expected = GlobalMapBuilder(config).build(registry, 2);
   ASSERT_TRUE(expected);
   EXPECT_TRUE(second->data == expected->data) << "the global map diffed on bytes differs from a fresh build";
+}
+
+/// `robot`'s map as the pipeline receives it (a `.bt` payload numbered `sequence` of session s1).
+MapSample sample_of(const test::RobotMap& robot, std::uint64_t sequence) {
+  MapSample s;
+  s.robot_id = s.topic_robot = robot.id;
+  s.session_id = "s1";
+  s.sequence = sequence;
+  s.encoding = "octomap-bt";
+  s.data = encode_map(*robot.tree, Encoding::kOctomapBt);
+  return s;
+}
+
+std::size_t refinements(const Pipeline& p) {
+  const auto merges = p.recent_merges();
+  return static_cast<std::size_t>(
+      std::count_if(merges.begin(), merges.end(), [](const MergeReportOut& m) { return !m.global_search; }));
+}
+
+TEST(Pipeline, AKnownRobotIsRefinedOnceItsMapChangedByTheConfiguredShare) {
+  const GrownPair pair;
+  ServerConfig config;  // refine_min_change 0.1
+  Registry registry;
+  Pipeline pipeline(config, registry, nullptr, {});  // no hooks: refinements run inline
+  pipeline.process("r1", sample_of(pair.r1, 1), false);
+  pipeline.process("r2", sample_of(pair.r2, 1), false);
+  ASSERT_EQ(registry.status("r2"), RobotStatus::kAligned);
+  ASSERT_EQ(refinements(pipeline), 0u);
+  // A little more of the same corridor: under 10% more nodes keeps the transform, and the map's
+  // tree is not even built.
+  const test::RobotMap a_bit_more = test::cut_robot_map(*pair.world, "r2", box(4, 24.6), pair.T2);
+  const double growth = static_cast<double>(a_bit_more.tree->size()) / pair.r2.tree->size() - 1.0;
+  ASSERT_GT(growth, 0.0);
+  ASSERT_LT(growth, config.merge.refine_min_change);
+  pipeline.process("r2", sample_of(a_bit_more, 2), false);
+  EXPECT_EQ(refinements(pipeline), 0u);
+  EXPECT_FALSE(registry.get("r2")->map->has_tree());
+  // The grown map (a third longer) is refined, from the transform known.
+  pipeline.process("r2", sample_of(pair.r2_grown, 3), false);
+  EXPECT_EQ(refinements(pipeline), 1u);
+  EXPECT_EQ(registry.status("r2"), RobotStatus::kAligned);
+  // With 0 every change is refined.
+  ServerConfig eager;
+  eager.merge.refine_min_change = 0.0;
+  Registry registry_eager;
+  Pipeline every_change(eager, registry_eager, nullptr, {});
+  every_change.process("r1", sample_of(pair.r1, 1), false);
+  every_change.process("r2", sample_of(pair.r2, 1), false);
+  ASSERT_EQ(registry_eager.status("r2"), RobotStatus::kAligned);
+  every_change.process("r2", sample_of(a_bit_more, 2), false);
+  EXPECT_EQ(refinements(every_change), 1u);
 }
 
 TEST(GlobalMapBuilder, AGrownMapIsFusedByItsDifferenceAndEqualsAFreshBuild) {

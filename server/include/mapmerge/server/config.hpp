@@ -26,6 +26,9 @@ struct MergeConfig {
   std::string global_frame = "global";  ///< frame id of the global map and poses
   double global_resolution = 0.0;    ///< voxel edge of the global map [m]; 0: the reference's
   bool refine_known = true;          ///< refine a known robot's transform when its map changes
+  double refine_min_change = 0.1;    ///< ... once its map or its partner's has changed by this share of
+                                     ///< its nodes since the pair was last aligned (a map that barely
+                                     ///< changed keeps its transform; 0: on every change) [0..1]
   bool search_blocks_fallback = true;  ///< a whole-map global search that accepts nothing is run once
                                        ///< more block by block (the paper's *_DIV: a small overlap is a
                                        ///< larger share of one block); ignored when align.submodels is on

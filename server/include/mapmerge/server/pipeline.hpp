@@ -116,7 +116,11 @@ class Pipeline {
   Store* store_;
   Hooks hooks_;
   std::atomic<std::uint64_t> accepted_{0}, rejected_{0}, merges_{0}, extra_tried_{0}, extra_added_{0};
-  std::mutex alignment_mutex_;  ///< one edge set written and installed at a time
+  std::mutex alignment_mutex_;  ///< one edge set written and installed at a time; guards edge_basis_
+  /// Per accepted edge (target, source): the node counts of the two maps it was aligned on.
+  std::map<std::pair<std::string, std::string>, std::pair<std::size_t, std::size_t>> edge_basis_;
+  /// Whether edge (target, source)'s maps changed enough since it was aligned to refine it.
+  bool worth_refining(const Edge& edge);
   struct OverlapEstimate {
     std::size_t target_hash = 0, source_hash = 0;
     Eigen::Matrix4d T_target_source = Eigen::Matrix4d::Identity();
