@@ -1,5 +1,9 @@
 #include "mapmerge/server/server.hpp"
 
+#include <malloc.h>
+
+#include <utility>
+
 #include <spdlog/spdlog.h>
 
 #include "mapmerge/server/global_map.hpp"
@@ -183,7 +187,16 @@ void Server::loop_once() {
     last_store_retry_ = now;
     store_->retry();  // writes that failed (disk full, read-only): logged and on the status topic
   }
-  if (now - last_status_ >= seconds(config_.publish.status_period_s)) publish_status();
+  if (now - last_status_ >= seconds(config_.publish.status_period_s)) {
+    publish_status();
+    if (std::exchange(trim_due_, false)) {
+      // Replaced maps were freed since: give their pages back (RSS of fr_079 x2 at 1 Hz 417 ->
+      // 220 MB; ~5 ms, on this loop after the publication, not on the update path).
+      const auto t0 = Clock::now();
+      malloc_trim(0);
+      spdlog::debug("heap trimmed in {:.1f} ms", std::chrono::duration<double>(Clock::now() - t0).count() * 1e3);
+    }
+  }
 }
 
 void Server::publish_global() {
@@ -204,6 +217,7 @@ void Server::publish_global() {
   republish();
   const auto t_published = Clock::now();
   builder_.release_replaced();
+  trim_due_ = true;
   std::string unaligned;
   for (const PoseOut& p : poses) {
     if (p.state != PoseState::kAligned) unaligned += " " + p.robot_id;

@@ -62,6 +62,7 @@ class Server {
   std::condition_variable cv_;
   std::atomic<bool> stopping_{false};
   std::atomic<bool> dirty_{false};
+  bool trim_due_ = false;  ///< maps were freed since the heap was last trimmed (main loop only)
   std::atomic<bool> requested_{false};
   std::atomic<std::uint64_t> received_{0};
   std::atomic<std::uint64_t> ignored_{0};      ///< duplicate and out-of-order updates
