@@ -104,8 +104,10 @@ class ChildProcess {
     }
     return code_;
   }
-  /// Sends `sig` to the group and waits for the exit as wait() does.
-  int kill(int sig, std::chrono::milliseconds timeout = std::chrono::seconds(20)) {
+  /// Sends `sig` to the group and waits for the exit as wait() does. The default wait covers a
+  /// server finishing a global search that was running when the signal came (the search is not
+  /// cancelled midway: up to ~30 s under ASan).
+  int kill(int sig, std::chrono::milliseconds timeout = std::chrono::seconds(60)) {
     signal(sig);
     return wait(timeout);
   }
