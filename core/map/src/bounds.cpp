@@ -37,10 +37,11 @@ class BoundsWalk {
     for (unsigned i = 0; i < 8; ++i) {
       const unsigned code = detail::binary_child_code(record, i);
       if (code == 0) continue;
+      const std::array<std::uint32_t, 3> child = child_corner(corner, half, i);
       if (code == 3) {
-        visit(body, pos, child_corner(corner, half, i), half);  // validated: depth <= 16
-      } else if (!found_ || !inside(child_corner(corner, half, i), half)) {
-        add_leaf(child_corner(corner, half, i), half);
+        visit(body, pos, child, half);  // validated: depth <= 16
+      } else if (!found_ || !inside(child, half)) {
+        add_leaf(child, half);
       }
     }
   }

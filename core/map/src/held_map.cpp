@@ -32,8 +32,7 @@ HeldMap::HeldMap(std::shared_ptr<const octomap::OcTree> tree, std::shared_ptr<co
       occupied_log_odds_(tree ? tree->getClampingThresMaxLog() : 0.0F),
       tree_(std::move(tree)) {
   if (!tree_) throw MapError("HeldMap: null tree");
-  std::call_once(built_, [] {});
-  built_flag_.store(true, std::memory_order_release);
+  built_flag_.store(true, std::memory_order_release);  // tree() never builds
 }
 
 HeldMap::HeldMap(double resolution, std::shared_ptr<const std::vector<std::uint8_t>> body, std::size_t num_nodes)
@@ -44,6 +43,7 @@ HeldMap::HeldMap(double resolution, std::shared_ptr<const std::vector<std::uint8
       occupied_log_odds_(default_tree().getClampingThresMaxLog()) {}
 
 std::shared_ptr<const octomap::OcTree> HeldMap::tree() const {
+  if (built_flag_.load(std::memory_order_acquire)) return tree_;
   std::call_once(built_, [this] {
     tree_ = detail::build_checked_binary_tree(resolution_, *body_);
     built_flag_.store(true, std::memory_order_release);

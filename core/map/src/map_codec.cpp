@@ -180,6 +180,31 @@ DecodeResult decode_file_bytes(const std::uint8_t* data, std::size_t size, bool 
                      header.size, limits, build_tree);
 }
 
+/// decode_map(); with `build_tree` false a binary body is only checked. `res_out`: the header's
+/// resolution, once parsed.
+DecodeResult decode_payload(const std::uint8_t* data, std::size_t size, Encoding encoding, const DecodeLimits& limits,
+                            bool build_tree, double* res_out) {
+  switch (encoding) {
+    case Encoding::kOctomapBt: return decode_file_bytes(data, size, true, limits, build_tree, res_out);
+    case Encoding::kOctomapOt: return decode_file_bytes(data, size, false, limits, build_tree, res_out);
+    case Encoding::kOctomapBtZstd: {
+      if (auto too_large = check_size(size, limits, "compressed payload")) return std::move(*too_large);
+      std::vector<std::uint8_t> raw;
+      if (auto bad = detail::inflate(data, size, limits, raw)) return std::move(*bad);
+      return decode_file_bytes(raw.data(), raw.size(), true, limits, build_tree, res_out);
+    }
+  }
+  return rejected(DecodeError::kUnknownEncoding, "unknown encoding value");
+}
+
+/// decode_tree_body(), the same way.
+DecodeResult tree_body(std::string_view id, double resolution, bool binary, const std::uint8_t* data,
+                       std::size_t size, const DecodeLimits& limits, bool build_tree) {
+  if (auto too_large = check_size(size, limits, "tree body")) return std::move(*too_large);
+  if (auto bad = check_id_and_resolution(id, resolution, limits)) return std::move(*bad);
+  return decode_body(resolution, binary, data, size, std::nullopt, limits, build_tree);
+}
+
 /// What check_map() keeps of a decode_body() result.
 CheckedMap to_checked(DecodeResult r, double res) {
   CheckedMap out;
@@ -264,17 +289,7 @@ std::vector<std::uint8_t> encode_map(const octomap::OcTree& tree, Encoding encod
 
 DecodeResult decode_map(const std::uint8_t* data, std::size_t size, Encoding encoding,
                         const DecodeLimits& limits) {
-  switch (encoding) {
-    case Encoding::kOctomapBt: return decode_file_bytes(data, size, true, limits);
-    case Encoding::kOctomapOt: return decode_file_bytes(data, size, false, limits);
-    case Encoding::kOctomapBtZstd: {
-      if (auto too_large = check_size(size, limits, "compressed payload")) return std::move(*too_large);
-      std::vector<std::uint8_t> raw;
-      if (auto bad = detail::inflate(data, size, limits, raw)) return std::move(*bad);
-      return decode_file_bytes(raw.data(), raw.size(), true, limits);
-    }
-  }
-  return rejected(DecodeError::kUnknownEncoding, "unknown encoding value");
+  return decode_payload(data, size, encoding, limits, true, nullptr);
 }
 
 DecodeResult decode_map(const std::vector<std::uint8_t>& bytes, Encoding encoding,
@@ -296,9 +311,7 @@ DecodeResult decode_map(const std::vector<std::uint8_t>& bytes, std::string_view
 DecodeResult decode_tree_body(std::string_view id, double resolution, bool binary,
                               const std::uint8_t* data, std::size_t size,
                               const DecodeLimits& limits) {
-  if (auto too_large = check_size(size, limits, "tree body")) return std::move(*too_large);
-  if (auto bad = check_id_and_resolution(id, resolution, limits)) return std::move(*bad);
-  return decode_body(resolution, binary, data, size, std::nullopt, limits);
+  return tree_body(id, resolution, binary, data, size, limits, true);
 }
 
 DecodeResult decode_tree_body(std::string_view id, double resolution, bool binary,
@@ -320,22 +333,9 @@ std::vector<std::uint8_t> encode_tree_body(const octomap::OcTree& tree, bool bin
 }
 
 CheckedMap check_map(const std::uint8_t* data, std::size_t size, Encoding encoding, const DecodeLimits& limits) {
-  double res = 0.0;  // the header's, set by decode_file_bytes
-  switch (encoding) {
-    case Encoding::kOctomapBt: {
-      DecodeResult r = decode_file_bytes(data, size, true, limits, false, &res);
-      return to_checked(std::move(r), res);
-    }
-    case Encoding::kOctomapOt: return to_checked(decode_file_bytes(data, size, false, limits), res);
-    case Encoding::kOctomapBtZstd: {
-      if (auto too_large = check_size(size, limits, "compressed payload")) return to_checked(std::move(*too_large), res);
-      std::vector<std::uint8_t> raw;
-      if (auto bad = detail::inflate(data, size, limits, raw)) return to_checked(std::move(*bad), res);
-      DecodeResult r = decode_file_bytes(raw.data(), raw.size(), true, limits, false, &res);
-      return to_checked(std::move(r), res);
-    }
-  }
-  return to_checked(rejected(DecodeError::kUnknownEncoding, "unknown encoding value"), res);
+  double res = 0.0;  // the header's, set by decode_payload
+  DecodeResult r = decode_payload(data, size, encoding, limits, false, &res);
+  return to_checked(std::move(r), res);
 }
 
 CheckedMap check_map(const std::vector<std::uint8_t>& bytes, std::string_view encoding, const DecodeLimits& limits) {
@@ -346,9 +346,7 @@ CheckedMap check_map(const std::vector<std::uint8_t>& bytes, std::string_view en
 
 CheckedMap check_tree_body(std::string_view id, double resolution, bool binary, const std::vector<std::uint8_t>& data,
                            const DecodeLimits& limits) {
-  if (auto too_large = check_size(data.size(), limits, "tree body")) return to_checked(std::move(*too_large), resolution);
-  if (auto bad = check_id_and_resolution(id, resolution, limits)) return to_checked(std::move(*bad), resolution);
-  return to_checked(decode_body(resolution, binary, data.data(), data.size(), std::nullopt, limits, false), resolution);
+  return to_checked(tree_body(id, resolution, binary, data.data(), data.size(), limits, false), resolution);
 }
 
 }  // namespace mapmerge
