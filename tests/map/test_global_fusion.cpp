@@ -9,6 +9,7 @@
 
 #include "map_test_util.hpp"
 #include "mapmerge/map/crop.hpp"
+#include "mapmerge/map/global_delta.hpp"
 #include "mapmerge/map/global_fusion.hpp"
 #include "mapmerge/map/map_codec.hpp"
 
@@ -132,20 +133,21 @@ Tree aligned_cube(double res, const octomap::point3d& corner) {
   return t;
 }
 
-TEST_F(GlobalFusionTest, EncodingAfterEveryChangeEqualsAFreshEncoding) {
-  // encode() copies the bytes of unchanged blocks from the previous encoding: after each step
-  // the bytes must be exactly those of a fresh fusion of the same maps.
-  const double res = world_->getResolution();
-  const Robot r2 = cut(*world_, "r2", -8, 6, 1.1);
-  const Robot r2_grown = cut(*world_, "r2", -8, 12, 1.1);
-  const Robot r2_shrunk = cut(*world_, "r2", -5, 9, 1.1);
-  const Robot r3 = cut(*world_, "r3", 2, 20, -2.3);
+using FleetState = std::vector<std::pair<std::string, std::pair<Tree, Eigen::Matrix4d>>>;
+
+/// A fleet's maps over time: a second robot, a grown map (fused by difference), a moved pose, a
+/// large aligned block in and out, a robot out and a map shrunk, a whole building in.
+std::vector<FleetState> change_steps(const octomap::OcTree& world) {
+  const double res = world.getResolution();
+  const Robot r2 = cut(world, "r2", -8, 6, 1.1);
+  const Robot r2_grown = cut(world, "r2", -8, 12, 1.1);
+  const Robot r2_shrunk = cut(world, "r2", -5, 9, 1.1);
+  const Robot r3 = cut(world, "r3", 2, 20, -2.3);
   const Tree cube = aligned_cube(res, octomap::point3d(1.0f, 1.0f, 0.0f));
-  ASSERT_EQ(cube->getNumLeafNodes(), 1U);
+  EXPECT_EQ(cube->getNumLeafNodes(), 1U);
   Eigen::Matrix4d T3 = T_global(r3);
   T3(0, 3) += 0.05;
-  using State = std::vector<std::pair<std::string, std::pair<Tree, Eigen::Matrix4d>>>;
-  const std::vector<State> steps{
+  return {
       {{"r2", {r2.map, T_global(r2)}}},
       {{"r2", {r2.map, T_global(r2)}}, {"r3", {r3.map, T_global(r3)}}},
       {{"r2", {r2_grown.map, T_global(r2)}}, {"r3", {r3.map, T_global(r3)}}},           // by difference
@@ -153,26 +155,118 @@ TEST_F(GlobalFusionTest, EncodingAfterEveryChangeEqualsAFreshEncoding) {
       {{"r2", {r2_grown.map, T_global(r2)}}, {"r3", {r3.map, T3}}, {"c", {cube, Eigen::Matrix4d::Identity()}}},
       {{"r2", {r2_shrunk.map, T_global(r2)}}, {"c", {cube, Eigen::Matrix4d::Identity()}}},  // r3 out, r2 shrinks
       {{"r2", {r2_shrunk.map, T_global(r2)}}},                                          // the big block out
-      {{"w", {Tree(new octomap::OcTree(*world_)), Eigen::Matrix4d::Identity()}}, {"r2", {r2_shrunk.map, T_global(r2)}}},
+      {{"w", {Tree(new octomap::OcTree(world)), Eigen::Matrix4d::Identity()}}, {"r2", {r2_shrunk.map, T_global(r2)}}},
   };
+}
+
+/// Brings `g` from the robots in `in` to `state` (sets every map, removes robots not in it).
+void apply_state(GlobalFusion& g, const FleetState& state, std::set<std::string>& in) {
+  std::set<std::string> now;
+  for (const auto& [id, m] : state) {
+    EXPECT_TRUE(g.set(id, m.first, m.second).ok) << id;
+    now.insert(id);
+  }
+  for (const auto& id : in) {
+    if (now.count(id) == 0) g.remove(id);
+  }
+  in = now;
+}
+
+TEST_F(GlobalFusionTest, EncodingAfterEveryChangeEqualsAFreshEncoding) {
+  // encode() copies the bytes of unchanged blocks from the previous encoding: after each step
+  // the bytes must be exactly those of a fresh fusion of the same maps.
+  const double res = world_->getResolution();
+  const std::vector<FleetState> steps = change_steps(*world_);
   GlobalFusion g(res);
   std::set<std::string> in;
   for (std::size_t k = 0; k < steps.size(); ++k) {
-    std::set<std::string> now;
-    for (const auto& [id, m] : steps[k]) {
-      ASSERT_TRUE(g.set(id, m.first, m.second).ok) << "step " << k << " " << id;
-      now.insert(id);
-    }
-    for (const auto& id : in) {
-      if (now.count(id) == 0) g.remove(id);
-    }
-    in = now;
+    apply_state(g, steps[k], in);
     const auto encoded = g.encode();
     const auto fresh = from_scratch(steps[k], res)->encode();
     EXPECT_EQ(encoded.nodes, fresh.nodes) << "step " << k;
     EXPECT_TRUE(encoded.bt == fresh.bt) << "step " << k << ": the encoded global maps differ";
     EXPECT_TRUE(g.encode().bt == fresh.bt) << "step " << k << ": encoding twice changed the bytes";
   }
+}
+
+/// Two trees node for node: same size, same structure, same log-odds (inner nodes too).
+void expect_same_nodes(const octomap::OcTree& a, const octomap::OcTree& b, const std::string& what) {
+  ASSERT_EQ(a.size(), b.size()) << what;
+  auto ib = b.begin_tree();
+  std::size_t differing = 0;
+  for (auto ia = a.begin_tree(), end = a.end_tree(); ia != end; ++ia, ++ib) {
+    differing += ia.getKey() != ib.getKey() || ia.getDepth() != ib.getDepth() || ia.isLeaf() != ib.isLeaf() ||
+                 ia->getLogOdds() != ib->getLogOdds();
+  }
+  EXPECT_EQ(differing, 0U) << what;
+}
+
+TEST_F(GlobalFusionTest, PatchingThePreviousMapWithTheChangedBlocksGivesTheNewMap) {
+  // A receiver holding the tree decoded from one encoding, patched with the next encoding's
+  // changed blocks, holds node for node the tree decoded from that next encoding.
+  const double res = world_->getResolution();
+  std::vector<FleetState> steps = change_steps(*world_);
+  steps.push_back({});  // everyone out: an empty map
+  steps.push_back(steps[2]);  // and back
+  GlobalFusion g(res);
+  std::set<std::string> in;
+  std::unique_ptr<octomap::OcTree> held;
+  // Grown, the cube in, the cube out, everyone out: a part of the map changed. The others
+  // (a robot in, a pose moved, a building in) rewrite more than half the map: sent whole.
+  const std::set<std::size_t> partial{2, 4, 6, 8};
+  for (std::size_t k = 0; k < steps.size(); ++k) {
+    const std::string what = "step " + std::to_string(k);
+    apply_state(g, steps[k], in);
+    const GlobalFusion::Encoded e = g.encode();
+    DecodeResult decoded = decode_map(e.bt, Encoding::kOctomapBt, DecodeLimits{});
+    ASSERT_TRUE(decoded.ok()) << what << ": " << decoded.reason;
+    EXPECT_EQ(e.patches.has_value(), partial.count(k) == 1) << what;
+    if (held && e.patches) {
+      EXPECT_EQ(check_block_patches(*e.patches, DecodeLimits{}.max_nodes), "") << what;
+      std::size_t bytes = 0;
+      for (const BlockPatch& p : *e.patches) bytes += p.records.size();
+      EXPECT_LE(bytes, e.body.size() / 2) << what;
+      apply_block_patches(*held, *e.patches);
+      expect_same_nodes(*held, *decoded.tree, what);
+      EXPECT_TRUE(encode_map(*held, Encoding::kOctomapBt) == e.bt) << what;
+    }
+    held = std::move(decoded.tree);
+    const GlobalFusion::Encoded again = g.encode();
+    EXPECT_TRUE(again.patches.has_value() && again.patches->empty()) << what << ": nothing changed, nothing to patch";
+  }
+}
+
+TEST(BlockPatches, MalformedPatchesAreRejectedWithAReason) {
+  BlockPatch ok{patch_block_of(octomap::OcTreeKey(32768, 32768, 32768)), BlockState::kMixed, {0x02, 0x00}};
+  EXPECT_EQ(check_block_patches({ok}, 100), "");
+  auto rejects = [](const std::vector<BlockPatch>& patches, const std::string& needle) {
+    const std::string reason = check_block_patches(patches, 100);
+    EXPECT_NE(reason.find(needle), std::string::npos) << "'" << reason << "' lacks '" << needle << "'";
+  };
+  BlockPatch p = ok;
+  p.block = std::uint64_t{1} << 11;
+  rejects({p}, "outside the key space");
+  rejects({ok, ok}, "patched twice");
+  p = ok;
+  p.state = static_cast<BlockState>(7);
+  rejects({p}, "unknown block state");
+  p = ok;
+  p.state = BlockState::kFree;
+  rejects({p}, "uniform block with records");
+  p = ok;
+  p.records = {0x00, 0x00};
+  rejects({p}, "without children");
+  p.records = {0x02};
+  rejects({p}, "end before a node");
+  p.records = {0x02, 0x00, 0x00};
+  rejects({p}, "bytes after");
+  p.records = {0x03, 0x00, 0x03, 0x00, 0x03, 0x00, 0x03, 0x00, 0x03, 0x00, 0x02, 0x00};  // 6 levels below a block
+  rejects({p}, "deeper than the tree");
+  p.records = {0xFF, 0xFF};  // 8 inner children announced, none follows
+  rejects({p}, "end before a node");
+  std::vector<BlockPatch> many;
+  for (std::uint64_t b = 0; b < 200; ++b) many.push_back(BlockPatch{b, BlockState::kFree, {}});
+  rejects(many, "more than 100 nodes");
 }
 
 /// `tree` as a robot sends it: encoded as `.bt`, then decoded (tree and binary body).

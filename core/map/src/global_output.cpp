@@ -5,6 +5,7 @@
 #include <sstream>
 
 #include "leaf_mapper.hpp"
+#include "mapmerge/map/global_delta.hpp"
 #include "mapmerge/map/global_fusion.hpp"
 #include "mapmerge/map/map_io.hpp"
 #include "sum_tree.hpp"
@@ -43,6 +44,7 @@ class BodyWriter {
     if (root == nullptr) return 0;
     if (s == State::kUnknown) {
       sums_.drop_all();
+      sums_.forget_changes();  // nothing was known: the next encoding's changes are its patches
       last_.blocks.clear();
       return 0;
     }
@@ -156,11 +158,48 @@ struct VoteSink {
   }
 };
 
+/// The new content of each block in `ids`, after BodyWriter ran: its bytes as just written, or
+/// the state of the uniform region (or unknown space) it lies in. Nullopt when the records would
+/// outweigh half of the whole `body` (the receiver then does better to decode the map).
+std::optional<std::vector<BlockPatch>> patches_of(const detail::SumTree& sums, const detail::EncodedBlocks& blocks,
+                                                  const std::vector<std::uint64_t>& ids, std::size_t body_bytes) {
+  static_assert(kPatchBlockDepth == detail::SumTree::kBlockDepth, "patches name the encoder's blocks");
+  std::vector<BlockPatch> patches(ids.size());
+  std::size_t bytes = 0;
+  for (std::size_t k = 0; k < ids.size(); ++k) {
+    BlockPatch& p = patches[k];
+    p.block = ids[k];
+    if (auto it = blocks.blocks.find(ids[k]); it != blocks.blocks.end()) {
+      p.state = static_cast<BlockState>(it->second.state);
+      if (p.state == BlockState::kMixed) p.records = it->second.bytes;
+      bytes += p.records.size();
+      if (bytes > body_bytes / 2) return std::nullopt;
+      continue;
+    }
+    // Not written as a block: a leaf at or above block depth, or nothing (unknown).
+    constexpr unsigned s = 16 - kPatchBlockDepth;
+    const octomap::OcTreeKey key(static_cast<octomap::key_type>((ids[k] & 0xFFFFU) << s),
+                                 static_cast<octomap::key_type>(((ids[k] >> 16) & 0xFFFFU) << s),
+                                 static_cast<octomap::key_type>(((ids[k] >> 32) & 0xFFFFU) << s));
+    const detail::SumNode* node = sums.root_node();
+    for (unsigned depth = 0; node != nullptr && sums.nodeHasChildren(node); ++depth) {
+      if (depth == kPatchBlockDepth) return std::nullopt;  // an inner block the writer did not keep: cannot happen
+      const unsigned i = octomap::computeChildIdx(key, static_cast<int>(15 - depth));
+      node = sums.nodeChildExists(node, i) ? sums.getNodeChild(node, i) : nullptr;
+    }
+    p.state = node == nullptr ? BlockState::kUnknown : static_cast<BlockState>(leaf_state(node->getValue()));
+  }
+  return patches;
+}
+
 }  // namespace
 
 GlobalFusion::Encoded GlobalFusion::encode() {
+  constexpr std::size_t kMaxPatchBlocks = std::size_t{1} << 16;
   Encoded e;
+  const auto changed = sums_->changed_blocks(kMaxPatchBlocks);  // before the writer forgets them
   e.nodes = BodyWriter(*sums_, *encoded_, e.body).run();
+  if (changed) e.patches = patches_of(*sums_, *encoded_, *changed, e.body.size());
   const std::string header = bt_header(e.nodes, resolution_);
   e.bt.reserve(header.size() + e.body.size());
   e.bt.assign(header.begin(), header.end());

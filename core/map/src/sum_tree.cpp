@@ -62,6 +62,14 @@ void SumTree::add_subtree(SumNode* node, std::int64_t delta) {
   }
 }
 
+namespace {
+/// A region of 2^level voxels a side, named by its level and its key shifted right by level.
+std::uint64_t region_id(const octomap::OcTreeKey& key, unsigned level) {
+  return std::uint64_t{level} << 48 | std::uint64_t{key[0]} >> level | (std::uint64_t{key[1]} >> level) << 16 |
+         (std::uint64_t{key[2]} >> level) << 32;
+}
+}  // namespace
+
 void SumTree::note_change(const octomap::OcTreeKey& key, unsigned level) {
   if (all_changed_) return;
   if (level <= kTreeDepth - kBlockDepth) {
@@ -70,30 +78,48 @@ void SumTree::note_change(const octomap::OcTreeKey& key, unsigned level) {
     last_block_ = block;
     return;
   }
-  constexpr std::size_t kMaxRegions = 256;  // beyond: treat everything as changed
-  if (changed_regions_.size() >= kMaxRegions) {
-    all_changed_ = true;
-    return;
-  }
-  changed_regions_.emplace_back(key, level);
+  changed_regions_.insert(region_id(key, level));
+  region_levels_ |= 1U << level;
 }
 
 bool SumTree::changed(std::uint64_t block) const {
   if (all_changed_ || changed_blocks_.count(block) != 0) return true;
-  for (const auto& [key, level] : changed_regions_) {
-    const unsigned shift = level - (kTreeDepth - kBlockDepth);  // block bits inside the region
-    bool inside = true;
-    for (unsigned a = 0; a < 3 && inside; ++a) {
-      inside = ((block >> (16 * a)) & 0xFFFFU) >> shift == static_cast<std::uint64_t>(key[a] >> level);
-    }
-    if (inside) return true;
+  if (region_levels_ == 0) return false;
+  constexpr unsigned kBlockLevel = kTreeDepth - kBlockDepth;
+  const octomap::OcTreeKey key(static_cast<octomap::key_type>((block & 0xFFFFU) << kBlockLevel),
+                               static_cast<octomap::key_type>(((block >> 16) & 0xFFFFU) << kBlockLevel),
+                               static_cast<octomap::key_type>(((block >> 32) & 0xFFFFU) << kBlockLevel));
+  for (unsigned level = kBlockLevel + 1; level <= kTreeDepth; ++level) {
+    if ((region_levels_ & (1U << level)) != 0 && changed_regions_.count(region_id(key, level)) != 0) return true;
   }
   return false;
+}
+
+std::optional<std::vector<std::uint64_t>> SumTree::changed_blocks(std::size_t max) const {
+  if (all_changed_ || changed_blocks_.size() > max) return std::nullopt;
+  std::unordered_set<std::uint64_t> blocks(changed_blocks_);
+  for (const std::uint64_t region : changed_regions_) {
+    const auto level = static_cast<unsigned>(region >> 48);
+    const unsigned shift = level - (kTreeDepth - kBlockDepth);  // block bits inside the region
+    const std::uint64_t n = std::uint64_t{1} << shift;          // blocks per side
+    if (blocks.size() + n * n * n > max) return std::nullopt;
+    std::uint64_t first[3];
+    for (unsigned a = 0; a < 3; ++a) first[a] = ((region >> (16 * a)) & 0xFFFFU) << shift;
+    for (std::uint64_t z = 0; z < n; ++z) {
+      for (std::uint64_t y = 0; y < n; ++y) {
+        for (std::uint64_t x = 0; x < n; ++x) {
+          blocks.insert((first[0] + x) | (first[1] + y) << 16 | (first[2] + z) << 32);
+        }
+      }
+    }
+  }
+  return std::vector<std::uint64_t>(blocks.begin(), blocks.end());
 }
 
 void SumTree::forget_changes() {
   changed_blocks_.clear();
   changed_regions_.clear();
+  region_levels_ = 0;
   all_changed_ = false;
   last_block_ = ~std::uint64_t{0};
 }

@@ -8,6 +8,7 @@
 #include <array>
 #include <cmath>
 #include <cstdint>
+#include <optional>
 #include <unordered_map>
 #include <unordered_set>
 #include <utility>
@@ -59,6 +60,9 @@ class SumTree : public octomap::OcTreeBase<SumNode> {
   }
   /// Whether any voxel of `block` changed since the last forget_changes().
   bool changed(std::uint64_t block) const;
+  /// Every block changed() is true for, if they are known and at most `max` (else nullopt: too
+  /// many, or everything counts as changed).
+  std::optional<std::vector<std::uint64_t>> changed_blocks(std::size_t max) const;
   void forget_changes();
 
   /// Adds `delta` to every voxel of the aligned block of 2^level voxels per side holding `key`.
@@ -81,8 +85,9 @@ class SumTree : public octomap::OcTreeBase<SumNode> {
 
   std::array<SumNode*, 17> path_{};  ///< nodes of the last descent, by depth
   std::unordered_set<std::uint64_t> changed_blocks_;  ///< blocks touched by add()
-  std::vector<std::pair<octomap::OcTreeKey, unsigned>> changed_regions_;  ///< adds of more than a block
-  bool all_changed_ = true;          ///< too many large adds to list (or nothing encoded yet)
+  std::unordered_set<std::uint64_t> changed_regions_;  ///< adds of more than a block (level, key >> level)
+  std::uint32_t region_levels_ = 0;  ///< bit per level that changed_regions_ holds
+  bool all_changed_ = true;          ///< nothing encoded yet, or everything dropped
   std::uint64_t last_block_ = ~std::uint64_t{0};  ///< the block noted last (adds come in runs)
   octomap::OcTreeKey path_key_;
   unsigned path_depth_ = 0;

@@ -24,6 +24,7 @@
 #include <octomap/OcTree.h>
 
 #include "mapmerge/map/fusion.hpp"
+#include "mapmerge/map/global_delta.hpp"
 #include "mapmerge/map/held_map.hpp"
 #include "mapmerge/map/provenance.hpp"
 
@@ -102,10 +103,15 @@ class GlobalFusion {
   /// The bytes of every block (a subtree of 2^5 voxels a side) are kept, and a block none of
   /// whose voxels changed since the last encode() is copied, not walked: encoding after an
   /// update costs O(changed blocks + their count), plus copying the bytes.
+  ///
+  /// `patches`: the blocks that changed since the previous encode(), which turn the tree decoded
+  /// from that encoding into the one decoded from this (apply_block_patches); none after the
+  /// first encoding, and none when they would cost the receiver about as much as the whole map.
   struct Encoded {
     std::vector<std::uint8_t> bt;    ///< header + body
     std::vector<std::uint8_t> body;  ///< body only (octomap_msgs binary)
     std::size_t nodes = 0;           ///< nodes of the encoded tree
+    std::optional<std::vector<BlockPatch>> patches;
   };
   Encoded encode();
 

@@ -1,0 +1,289 @@
+#include "mapmerge/map/global_delta.hpp"
+
+#include <algorithm>
+#include <array>
+#include <unordered_set>
+
+#include "tree_scan.hpp"
+
+namespace mapmerge {
+namespace {
+
+constexpr unsigned kTreeDepth = 16;
+constexpr unsigned kBlockShift = kTreeDepth - kPatchBlockDepth;  ///< key bits inside a block
+
+/// OctoMap frees a node's child pointer array only when it prunes the node, and creates the root
+/// only inside updateNode(); these reach the members it keeps protected (pointers to members,
+/// formed through derived classes as the language allows), so that a patch leaves no emptied
+/// array behind and can create the root of an empty tree.
+struct NodeAccess : octomap::OcTreeNode {
+  static constexpr auto kChildren = &NodeAccess::children;
+};
+struct TreeAccess : octomap::OcTree {
+  static constexpr auto kRoot = &TreeAccess::root;
+  static constexpr auto kTreeSize = &TreeAccess::tree_size;
+  static constexpr auto kSizeChanged = &TreeAccess::size_changed;
+};
+using Base = octomap::OcTreeBaseImpl<octomap::OcTreeNode, octomap::AbstractOccupancyOcTree>;
+
+/// The first voxel key of `block`.
+octomap::OcTreeKey block_key(std::uint64_t block) {
+  return octomap::OcTreeKey(static_cast<octomap::key_type>((block & 0xFFFFU) << kBlockShift),
+                            static_cast<octomap::key_type>(((block >> 16) & 0xFFFFU) << kBlockShift),
+                            static_cast<octomap::key_type>(((block >> 32) & 0xFFFFU) << kBlockShift));
+}
+
+/// Child index of the node at `depth` on the way to `key`.
+unsigned child_at(const octomap::OcTreeKey& key, unsigned depth) {
+  return octomap::computeChildIdx(key, static_cast<int>(kTreeDepth - 1 - depth));
+}
+
+class Patcher {
+ public:
+  explicit Patcher(octomap::OcTree& tree) : tree_(tree) {}
+
+  void put(const BlockPatch& patch) {
+    const octomap::OcTreeKey key = block_key(patch.block);
+    octomap::OcTreeNode* node = root();
+    if (node == nullptr) {
+      if (patch.state == BlockState::kUnknown) return;
+      node = make_root();
+    }
+    for (unsigned depth = 0; depth < kPatchBlockDepth; ++depth) {
+      const unsigned i = child_at(key, depth);
+      if (tree_.nodeChildExists(node, i)) {
+        octomap::OcTreeNode* child = tree_.getNodeChild(node, i);
+        if (!tree_.nodeHasChildren(child) && depth + 1 < kPatchBlockDepth) {
+          tree_.expandNode(child);  // a uniform region larger than a block: its blocks inherit its state
+        }
+        node = child;
+      } else {
+        if (patch.state == BlockState::kUnknown) return;  // unknown already
+        node = tree_.createNodeChild(node, i);
+      }
+    }
+    erase_children(node);
+    switch (patch.state) {
+      case BlockState::kUnknown: break;  // removed by canonical(): a node without children
+      case BlockState::kFree: node->setLogOdds(tree_.getClampingThresMinLog()); break;
+      case BlockState::kOccupied: node->setLogOdds(tree_.getClampingThresMaxLog()); break;
+      case BlockState::kMixed: {
+        const std::uint8_t* next = patch.records.data();
+        read(node, next);
+        node->setLogOdds(node->getMaxChildLogOdds());
+        break;
+      }
+    }
+    if (patch.state == BlockState::kUnknown) unknown_.push_back(patch.block);
+    patched_.push_back(patch.block);
+  }
+
+  /// Restores the form decode_map() builds, bottom-up along every patched block's path: a node
+  /// without children is unknown space (removed), one whose 8 children are equal leaves is a leaf,
+  /// any other inner node holds the maximum of its children (the root: occupied, as decoded).
+  void canonical() {
+    for (std::uint64_t block : unknown_) remove_if_empty(block, kPatchBlockDepth);
+    std::unordered_set<std::uint64_t> parents;  // nodes at `depth`, named by their key prefix
+    for (std::uint64_t block : patched_) parents.insert(parent_of(block));
+    for (unsigned depth = kPatchBlockDepth - 1; depth >= 1; --depth) {
+      std::unordered_set<std::uint64_t> up;
+      for (std::uint64_t prefix : parents) {
+        fix(prefix, depth);
+        up.insert(parent_of(prefix));
+      }
+      parents.swap(up);
+    }
+    octomap::OcTreeNode* r = root();
+    if (r == nullptr) return;
+    if (!tree_.nodeHasChildren(r)) {
+      tree_.clear();
+      return;
+    }
+    r->setLogOdds(tree_.getClampingThresMaxLog());
+  }
+
+ private:
+  octomap::OcTreeNode* root() {
+    Base& base = tree_;
+    return base.*TreeAccess::kRoot;
+  }
+
+  octomap::OcTreeNode* make_root() {
+    Base& base = tree_;
+    auto* r = new octomap::OcTreeNode();
+    r->setLogOdds(tree_.getClampingThresMaxLog());
+    base.*TreeAccess::kRoot = r;
+    ++(base.*TreeAccess::kTreeSize);
+    base.*TreeAccess::kSizeChanged = true;
+    return r;
+  }
+
+  /// The prefix (key >> bits below `depth`, packed as block ids are) of the parent of a node.
+  static std::uint64_t parent_of(std::uint64_t prefix) {
+    return (prefix & 0xFFFFU) >> 1 | (((prefix >> 16) & 0xFFFFU) >> 1) << 16 | (((prefix >> 32) & 0xFFFFU) >> 1) << 32;
+  }
+
+  static octomap::OcTreeKey prefix_key(std::uint64_t prefix, unsigned depth) {
+    const unsigned s = kTreeDepth - depth;
+    return octomap::OcTreeKey(static_cast<octomap::key_type>((prefix & 0xFFFFU) << s),
+                              static_cast<octomap::key_type>(((prefix >> 16) & 0xFFFFU) << s),
+                              static_cast<octomap::key_type>(((prefix >> 32) & 0xFFFFU) << s));
+  }
+
+  /// The node at `depth` named by `prefix` and its parent (nulls where the path ends).
+  std::pair<octomap::OcTreeNode*, octomap::OcTreeNode*> find(std::uint64_t prefix, unsigned depth) {
+    const octomap::OcTreeKey key = prefix_key(prefix, depth);
+    octomap::OcTreeNode* parent = nullptr;
+    octomap::OcTreeNode* node = root();
+    for (unsigned d = 0; d < depth && node != nullptr; ++d) {
+      const unsigned i = child_at(key, d);
+      parent = node;
+      node = tree_.nodeChildExists(node, i) ? tree_.getNodeChild(node, i) : nullptr;
+    }
+    return {node, parent};
+  }
+
+  void remove_if_empty(std::uint64_t prefix, unsigned depth) {
+    auto [node, parent] = find(prefix, depth);
+    if (node == nullptr || parent == nullptr || tree_.nodeHasChildren(node)) return;
+    free_children_array(node);
+    tree_.deleteNodeChild(parent, child_at(prefix_key(prefix, depth), depth - 1));
+  }
+
+  void fix(std::uint64_t prefix, unsigned depth) {
+    auto [node, parent] = find(prefix, depth);
+    if (node == nullptr) return;
+    if (!tree_.nodeHasChildren(node)) {  // all its blocks went unknown
+      free_children_array(node);
+      tree_.deleteNodeChild(parent, child_at(prefix_key(prefix, depth), depth - 1));
+      return;
+    }
+    if (tree_.pruneNode(node)) return;  // 8 equal leaves: one leaf
+    node->setLogOdds(node->getMaxChildLogOdds());
+  }
+
+  void erase_children(octomap::OcTreeNode* node) {
+    if (node->*NodeAccess::kChildren == nullptr) return;
+    for (unsigned i = 0; i < 8; ++i) {
+      if (!tree_.nodeChildExists(node, i)) continue;
+      erase_children(tree_.getNodeChild(node, i));  // depth <= 16: bounded recursion
+      tree_.deleteNodeChild(node, i);
+    }
+    free_children_array(node);
+  }
+
+  static void free_children_array(octomap::OcTreeNode* node) {
+    auto& children = node->*NodeAccess::kChildren;
+    delete[] children;
+    children = nullptr;
+  }
+
+  /// Reads one checked subtree's records into `node` as decode_map() does: leaves at the
+  /// clamping thresholds, inner nodes the maximum of their children.
+  void read(octomap::OcTreeNode* node, const std::uint8_t*& next) {
+    const std::uint8_t* record = next;
+    next += 2;
+    unsigned inner = 0;
+    for (unsigned i = 0; i < 8; ++i) {
+      const unsigned bits = detail::binary_child_code(record, i);
+      if (bits == 0) continue;
+      octomap::OcTreeNode* child = tree_.createNodeChild(node, i);
+      child->setLogOdds(bits == 1 ? tree_.getClampingThresMinLog() : tree_.getClampingThresMaxLog());
+      if (bits == 3) inner |= 1U << i;
+    }
+    for (unsigned i = 0; i < 8; ++i) {
+      if ((inner & (1U << i)) == 0) continue;
+      octomap::OcTreeNode* child = tree_.getNodeChild(node, i);
+      read(child, next);  // checked: at most 16 - kPatchBlockDepth levels
+      child->setLogOdds(child->getMaxChildLogOdds());
+    }
+  }
+
+  octomap::OcTree& tree_;
+  std::vector<std::uint64_t> patched_;  ///< every patched block
+  std::vector<std::uint64_t> unknown_;  ///< the patched blocks that are unknown now
+};
+
+/// Checks the records of one block's subtree: well formed, exactly `size` bytes. Returns the
+/// number of nodes, or 0 after setting `error`.
+std::size_t check_records(const std::vector<std::uint8_t>& records, std::string& error) {
+  // A block's root sits at depth kPatchBlockDepth: a scan of its records as a body (root at
+  // depth 0) must stay within 16 - kPatchBlockDepth levels, and no record may be empty.
+  std::array<std::uint8_t, kTreeDepth + 2> pending{};
+  pending[0] = 1;
+  int depth = 0;
+  std::size_t pos = 0, nodes = 1;
+  for (;;) {
+    while (depth >= 0 && pending[static_cast<std::size_t>(depth)] == 0) --depth;
+    if (depth < 0) break;
+    --pending[static_cast<std::size_t>(depth)];
+    if (records.size() - pos < 2) {
+      error = "records end before a node (byte " + std::to_string(pos) + ")";
+      return 0;
+    }
+    unsigned children = 0, inner = 0;
+    for (unsigned i = 0; i < 8; ++i) {
+      const unsigned code = detail::binary_child_code(records.data() + pos, i);
+      children += code != 0;
+      inner += code == 3;
+    }
+    pos += 2;
+    if (children == 0) {
+      error = "a record without children (byte " + std::to_string(pos - 2) + ")";
+      return 0;
+    }
+    nodes += children;
+    if (inner > 0) {
+      if (static_cast<unsigned>(depth) + 1 >= kBlockShift) {
+        error = "records deeper than the tree (byte " + std::to_string(pos - 2) + ")";
+        return 0;
+      }
+      ++depth;
+      pending[static_cast<std::size_t>(depth)] = static_cast<std::uint8_t>(inner);
+    }
+  }
+  if (pos != records.size()) {
+    error = std::to_string(records.size() - pos) + " bytes after the block's subtree";
+    return 0;
+  }
+  return nodes;
+}
+
+}  // namespace
+
+std::string check_block_patches(const std::vector<BlockPatch>& patches, std::size_t max_nodes) {
+  constexpr std::uint64_t kAxisBlocks = std::uint64_t{1} << kPatchBlockDepth;
+  std::unordered_set<std::uint64_t> seen;
+  seen.reserve(patches.size());
+  std::size_t nodes = 0;
+  for (std::size_t k = 0; k < patches.size(); ++k) {
+    const BlockPatch& p = patches[k];
+    const std::string which = "block patch " + std::to_string(k) + ": ";
+    if ((p.block & 0xFFFFU) >= kAxisBlocks || ((p.block >> 16) & 0xFFFFU) >= kAxisBlocks ||
+        ((p.block >> 32) & 0xFFFFU) >= kAxisBlocks || (p.block >> 48) != 0) {
+      return which + "block id " + std::to_string(p.block) + " outside the key space";
+    }
+    if (!seen.insert(p.block).second) return which + "block " + std::to_string(p.block) + " patched twice";
+    const auto state = static_cast<unsigned>(p.state);
+    if (state > 3) return which + "unknown block state " + std::to_string(state);
+    if (p.state != BlockState::kMixed) {
+      if (!p.records.empty()) return which + "a uniform block with records";
+      ++nodes;
+    } else {
+      std::string error;
+      const std::size_t n = check_records(p.records, error);
+      if (n == 0) return which + error;
+      nodes += n;
+    }
+    if (nodes > max_nodes) return "block patches hold more than " + std::to_string(max_nodes) + " nodes";
+  }
+  return {};
+}
+
+void apply_block_patches(octomap::OcTree& tree, const std::vector<BlockPatch>& patches) {
+  Patcher patcher(tree);
+  for (const BlockPatch& p : patches) patcher.put(p);
+  patcher.canonical();
+}
+
+}  // namespace mapmerge
