@@ -5,12 +5,14 @@
 
 #include <unistd.h>
 
+#include "mapmerge/map/map_codec.hpp"
 #include "mapmerge/wire/topics.hpp"
 
 namespace mapmerge::client::detail {
 namespace {
 
 constexpr std::size_t kMaxPoseInbox = 4096;  ///< poses queued for callbacks; oldest dropped beyond
+constexpr std::size_t kMaxDeltaInbox = 8;    ///< global map deltas queued; oldest dropped beyond (the map follows)
 constexpr std::chrono::milliseconds kRetryDelay{100};  ///< before writing a failed update again
 constexpr std::chrono::seconds kWarningPeriod{5};       ///< at most one write-failure warning per period
 
@@ -53,6 +55,7 @@ ClientCore::ClientCore(Options options, Vendor vendor) : options_(validated(std:
   TransportEvents events;
   events.pose = [this](Pose&& p) { on_pose(std::move(p)); };
   events.global_map = [this](GlobalMapMessage&& m) { on_global_map(std::move(m)); };
+  events.global_delta = [this](GlobalDeltaMessage&& m) { on_global_delta(std::move(m)); };
   TransportConfig config = transport_config(options_);
   if (vendor_ == Vendor::kFastdds && config.profile.discovery_server.empty()) {
     if (const char* env = std::getenv("ROS_DISCOVERY_SERVER"); env != nullptr && *env != '\0') {
@@ -256,6 +259,15 @@ void ClientCore::on_global_map(GlobalMapMessage&& message) {
   inbox_cv_.notify_all();
 }
 
+void ClientCore::on_global_delta(GlobalDeltaMessage&& message) {
+  {
+    std::lock_guard<std::mutex> lock(inbox_mutex_);
+    if (delta_inbox_.size() >= kMaxDeltaInbox) delta_inbox_.pop_front();
+    delta_inbox_.push_back(std::move(message));
+  }
+  inbox_cv_.notify_all();
+}
+
 void ClientCore::warn(const std::string& message) { invoke(active_.warning, message); }
 
 void ClientCore::check_connection() {
@@ -300,17 +312,9 @@ void ClientCore::deliver_poses(std::deque<Pose>& poses) {
   }
 }
 
-namespace {
-/// FNV-1a over a payload: tells a republished global map from a new one without decoding it.
-std::uint64_t payload_hash(const std::vector<std::uint8_t>& data) {
-  std::uint64_t h = 1469598103934665603ull;
-  for (const std::uint8_t b : data) h = (h ^ b) * 1099511628211ull;
-  return h;
-}
-}  // namespace
-
 void ClientCore::deliver_map(GlobalMapMessage&& message) {
   // The server republishes its map periodically (late joiners): decode and report changes only.
+  // A map of the version just patched from its changed blocks hashes to what the delta said.
   const std::uint64_t hash = payload_hash(message.data);
   if (last_map_ && last_map_->first == message.version && last_map_->second == hash) return;
   last_map_ = std::make_pair(message.version, hash);
@@ -332,6 +336,52 @@ void ClientCore::deliver_map(GlobalMapMessage&& message) {
   }
 }
 
+void ClientCore::deliver_delta(GlobalDeltaMessage&& message) {
+  // Only onto exactly the map the server made it from; any other receiver takes the full map
+  // of this version, which the server sends right after.
+  if (!last_map_ || last_map_->first != message.base_version || last_map_->second != message.base_hash) return;
+  std::string error;
+  if (message.bytes >= options_.max_global_map_bytes) {
+    error = "changed blocks of " + std::to_string(message.bytes) + " bytes reach the limit of " +
+            std::to_string(options_.max_global_map_bytes);
+  } else {
+    error = check_block_patches(message.blocks, DecodeLimits{}.max_nodes);
+  }
+  if (!error.empty()) {
+    {
+      std::lock_guard<std::mutex> lock(state_mutex_);
+      ++stats_.global_deltas_rejected;
+    }
+    warn("global map version " + std::to_string(message.version) + ": changed blocks rejected (" + error +
+         "); waiting for the whole map");
+    return;
+  }
+  std::shared_ptr<const GlobalMap> patched;
+  {
+    // In place, so only while nobody else holds the map or its tree (nobody can take a new
+    // reference meanwhile: global_map() needs this lock). Otherwise the whole map is decoded.
+    std::lock_guard<std::mutex> lock(state_mutex_);
+    if (!global_map_ || global_map_.use_count() != 1 || global_map_->tree.use_count() != 1) return;
+    auto tree = std::const_pointer_cast<octomap::OcTree>(global_map_->tree);  // made mutable by decode
+    apply_block_patches(*tree, message.blocks);
+    auto map = std::make_shared<GlobalMap>();
+    map->version = message.version;
+    map->frame_id = std::move(message.frame_id);
+    map->resolution = message.resolution;
+    map->stamp = message.stamp;
+    map->encoding = global_map_->encoding;
+    map->payload_bytes = message.bytes;
+    map->contributors = std::move(message.contributors);
+    map->tree = std::move(tree);
+    global_map_ = map;
+    patched = std::move(map);
+    ++stats_.global_maps_received;
+    ++stats_.global_maps_patched;
+  }
+  last_map_ = std::make_pair(message.version, message.hash);
+  invoke(active_.map, patched);
+}
+
 void ClientCore::report_write_failures() {
   std::uint64_t failures = 0;
   {
@@ -351,16 +401,19 @@ void ClientCore::dispatch_loop() {
   while (!stop_) {
     std::deque<Pose> poses;
     std::optional<GlobalMapMessage> map;
+    std::deque<GlobalDeltaMessage> deltas;
     Callbacks callbacks;
     bool request = false, install = false;
     {
       std::unique_lock<std::mutex> lock(inbox_mutex_);
       inbox_cv_.wait_for(lock, options_.poll_period, [this] {
-        return stop_ || !pose_inbox_.empty() || map_inbox_ || request_pending_ || callbacks_pending_;
+        return stop_ || !pose_inbox_.empty() || map_inbox_ || !delta_inbox_.empty() || request_pending_ ||
+               callbacks_pending_;
       });
       if (stop_) break;
       poses.swap(pose_inbox_);
       map.swap(map_inbox_);
+      deltas.swap(delta_inbox_);
       request = std::exchange(request_pending_, false);
       install = std::exchange(callbacks_pending_, false);
       if (install) callbacks = std::exchange(pending_, Callbacks{});
@@ -369,6 +422,7 @@ void ClientCore::dispatch_loop() {
     check_connection();
     if (request && !transport_->write_request(requester_, ++nonce_)) warn("map request could not be written");
     deliver_poses(poses);
+    for (GlobalDeltaMessage& d : deltas) deliver_delta(std::move(d));  // before the map they make needless
     if (map) deliver_map(std::move(*map));
     report_write_failures();
   }

@@ -57,9 +57,11 @@ class ClientCore {
  private:
   void on_pose(Pose&& pose);                       // DDS thread
   void on_global_map(GlobalMapMessage&& message);  // DDS thread
+  void on_global_delta(GlobalDeltaMessage&& message);  // DDS thread
   void dispatch_loop();
   void deliver_poses(std::deque<Pose>& poses);      // dispatch thread
   void deliver_map(GlobalMapMessage&& message);     // dispatch thread
+  void deliver_delta(GlobalDeltaMessage&& message);  // dispatch thread
   void report_write_failures();                     // dispatch thread
   void send_loop();
   void warn(const std::string& message);           // dispatch thread
@@ -92,13 +94,14 @@ class ClientCore {
   std::condition_variable inbox_cv_;
   std::deque<Pose> pose_inbox_;
   std::optional<GlobalMapMessage> map_inbox_;  // latest wins
+  std::deque<GlobalDeltaMessage> delta_inbox_;  // in arrival order, the oldest dropped beyond a few
   bool request_pending_ = false;
   Callbacks pending_;
   bool callbacks_pending_ = false;
   bool was_connected_ = false;                  // dispatch thread only
   bool ask_on_connect_ = false;                 // dispatch thread only: a request waits for its reader
   std::uint64_t failures_reported_ = 0;         // dispatch thread only
-  std::optional<std::pair<std::uint64_t, std::uint64_t>> last_map_;  // version, payload hash; dispatch thread
+  std::optional<std::pair<std::uint64_t, std::uint64_t>> last_map_;  // version, payload hash of the map held; dispatch thread
   std::chrono::steady_clock::time_point last_failure_warning_;  // dispatch thread only
 
   // Send thread outbox, guarded by send_mutex_.

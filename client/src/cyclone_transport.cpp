@@ -56,6 +56,30 @@ GlobalMapMessage to_message(const mapmerge_GlobalMap& s) {
   return m;
 }
 
+GlobalDeltaMessage to_message(const mapmerge_GlobalMapDelta& s) {
+  GlobalDeltaMessage m;
+  m.version = s.version;
+  m.base_version = s.base_version;
+  m.base_hash = s.base_hash;
+  m.hash = s.hash;
+  m.stamp = to_seconds(s.stamp.sec, s.stamp.nanosec);
+  m.frame_id = str(s.frame_id);
+  m.resolution = s.resolution;
+  m.blocks.reserve(s.blocks._length);
+  for (uint32_t i = 0; i < s.blocks._length; ++i) {
+    const auto& b = s.blocks._buffer[i];
+    BlockPatch p{b.block, static_cast<BlockState>(b.state), {}};
+    if (b.records._buffer != nullptr) p.records.assign(b.records._buffer, b.records._buffer + b.records._length);
+    m.bytes += p.records.size();
+    m.blocks.push_back(std::move(p));
+  }
+  for (uint32_t i = 0; i < s.contributors._length; ++i) {
+    const auto& c = s.contributors._buffer[i];
+    m.contributors.push_back({str(c.robot_id), str(c.session_id), c.sequence_number});
+  }
+  return m;
+}
+
 /// Takes every available sample of `reader` (loaned) and hands each valid one to `sink`.
 template <class Sample, class Sink>
 void take_all(dds_entity_t reader, Sink&& sink) {
@@ -92,12 +116,19 @@ class CycloneTransport final : public Transport {
     pose_reader_ = p.create_reader(p.topic(&mapmerge_RobotPose_desc, wire::kPosesTopic), wire::TopicKind::State);
     if (config.receive_global_map) {
       map_reader_ = p.create_reader(p.topic(&mapmerge_GlobalMap_desc, wire::kGlobalMapTopic), wire::TopicKind::State);
+      try {  // without it (e.g. a keystore from before the topic) every version is decoded whole
+        delta_reader_ = p.create_reader(p.topic(&mapmerge_GlobalMapDelta_desc, wire::kGlobalDeltaTopic),
+                                        wire::TopicKind::Event);
+      } catch (const wire::CycloneError&) {
+        delta_reader_ = 0;
+      }
     }
     waitset_ = dds_create_waitset(p.participant());
     wakeup_ = dds_create_guardcondition(p.participant());
     if (waitset_ < 0 || wakeup_ < 0) throw wire::CycloneError("cannot create Cyclone waitset");
     attach(pose_reader_);
     attach(map_reader_);
+    attach(delta_reader_);
     dds_waitset_attach(waitset_, wakeup_, 0);
     thread_ = std::thread([this] { run(); });
   }
@@ -172,6 +203,10 @@ class CycloneTransport final : public Transport {
       dds_waitset_wait(waitset_, nullptr, 0, kWaitsetPeriod);
       if (stop_) break;
       take_all<mapmerge_RobotPose>(pose_reader_, [this](const mapmerge_RobotPose& s) { events_.pose(to_pose(s)); });
+      if (delta_reader_ > 0) {  // before the map: a delta makes decoding the map of its version needless
+        take_all<mapmerge_GlobalMapDelta>(
+            delta_reader_, [this](const mapmerge_GlobalMapDelta& s) { events_.global_delta(to_message(s)); });
+      }
       if (map_reader_ > 0) {
         take_all<mapmerge_GlobalMap>(map_reader_,
                                      [this](const mapmerge_GlobalMap& s) { events_.global_map(to_message(s)); });
@@ -185,6 +220,7 @@ class CycloneTransport final : public Transport {
   dds_entity_t request_writer_ = 0;
   dds_entity_t pose_reader_ = 0;
   dds_entity_t map_reader_ = 0;
+  dds_entity_t delta_reader_ = 0;
   dds_entity_t waitset_ = 0;
   dds_entity_t wakeup_ = 0;
   std::atomic<bool> stop_{false};

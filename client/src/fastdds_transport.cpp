@@ -70,6 +70,24 @@ GlobalMapMessage to_message(mapmerge::GlobalMap&& s) {
   return m;
 }
 
+GlobalDeltaMessage to_message(mapmerge::GlobalMapDelta&& s) {
+  GlobalDeltaMessage m;
+  m.version = s.version();
+  m.base_version = s.base_version();
+  m.base_hash = s.base_hash();
+  m.hash = s.hash();
+  m.stamp = to_seconds(s.stamp().sec(), s.stamp().nanosec());
+  m.frame_id = s.frame_id();
+  m.resolution = s.resolution();
+  m.blocks.reserve(s.blocks().size());
+  for (auto& b : s.blocks()) {
+    m.bytes += b.records().size();
+    m.blocks.push_back(BlockPatch{b.block(), static_cast<BlockState>(b.state()), std::move(b.records())});
+  }
+  for (const auto& c : s.contributors()) m.contributors.push_back({c.robot_id(), c.session_id(), c.sequence_number()});
+  return m;
+}
+
 /// Takes every sample of type Sample from a reader and hands each valid one to `sink`.
 template <class Sample>
 class TakeAllListener : public fdds::DataReaderListener {
@@ -95,7 +113,8 @@ class FastddsTransport final : public Transport {
   FastddsTransport(const TransportConfig& config, TransportEvents events)
       : events_(std::move(events)),
         pose_listener_([this](mapmerge::RobotPose&& s) { events_.pose(to_pose(s)); }),
-        map_listener_([this](mapmerge::GlobalMap&& s) { events_.global_map(to_message(std::move(s))); }) {
+        map_listener_([this](mapmerge::GlobalMap&& s) { events_.global_map(to_message(std::move(s))); }),
+        delta_listener_([this](mapmerge::GlobalMapDelta&& s) { events_.global_delta(to_message(std::move(s))); }) {
     wire::ParticipantOptions options;
     options.domain = config.domain;
     options.profile = config.profile;
@@ -116,14 +135,22 @@ class FastddsTransport final : public Transport {
     if (config.receive_global_map) {
       map_reader_ = p.create_reader(p.topic<mapmerge::GlobalMapPubSubType>(wire::kGlobalMapTopic),
                                     wire::TopicKind::State, &map_listener_);
+      try {  // without it (e.g. a keystore from before the topic) every version is decoded whole
+        delta_reader_ = p.create_reader(p.topic<mapmerge::GlobalMapDeltaPubSubType>(wire::kGlobalDeltaTopic),
+                                        wire::TopicKind::Event, &delta_listener_);
+      } catch (const wire::DdsError&) {
+        delta_reader_ = nullptr;
+      }
     }
   }
 
   ~FastddsTransport() override {
     pose_listener_.stop();
     map_listener_.stop();
+    delta_listener_.stop();
     if (pose_reader_ != nullptr) pose_reader_->set_listener(nullptr);
     if (map_reader_ != nullptr) map_reader_->set_listener(nullptr);
+    if (delta_reader_ != nullptr) delta_reader_->set_listener(nullptr);
     participant_.reset();  // deletes every entity before the listeners go
   }
 
@@ -177,11 +204,13 @@ class FastddsTransport final : public Transport {
   TransportEvents events_;
   TakeAllListener<mapmerge::RobotPose> pose_listener_;
   TakeAllListener<mapmerge::GlobalMap> map_listener_;
+  TakeAllListener<mapmerge::GlobalMapDelta> delta_listener_;
   std::unique_ptr<wire::FastddsParticipant> participant_;  // after the listeners: deleted first
   fdds::DataWriter* map_writer_ = nullptr;
   fdds::DataWriter* request_writer_ = nullptr;
   fdds::DataReader* pose_reader_ = nullptr;
   fdds::DataReader* map_reader_ = nullptr;
+  fdds::DataReader* delta_reader_ = nullptr;
 };
 
 }  // namespace

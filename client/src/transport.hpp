@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "mapmerge/client/client.hpp"
+#include "mapmerge/map/global_delta.hpp"
 #include "mapmerge/wire/profile.hpp"
 #include "mapmerge/wire/security.hpp"
 
@@ -39,6 +40,20 @@ struct GlobalMapMessage {
   std::vector<Contribution> contributors;
 };
 
+/// mapmerge::GlobalMapDelta without vendor types, the blocks not yet checked.
+struct GlobalDeltaMessage {
+  std::uint64_t version = 0;
+  std::uint64_t base_version = 0;
+  std::uint64_t base_hash = 0;
+  std::uint64_t hash = 0;
+  double stamp = 0.0;
+  std::string frame_id;
+  double resolution = 0.0;
+  std::vector<BlockPatch> blocks;
+  std::size_t bytes = 0;  ///< records' bytes
+  std::vector<Contribution> contributors;
+};
+
 struct TransportConfig {
   int domain = 0;
   wire::ProfileSpec profile;
@@ -53,6 +68,7 @@ struct TransportConfig {
 struct TransportEvents {
   std::function<void(Pose&&)> pose;
   std::function<void(GlobalMapMessage&&)> global_map;
+  std::function<void(GlobalDeltaMessage&&)> global_delta;
 };
 
 class Transport {

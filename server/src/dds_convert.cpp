@@ -66,6 +66,20 @@ MapSample from_ros(const octomap_msgs::msg::dds_::Octomap_& m, const std::string
   return s;
 }
 
+namespace {
+std::vector<mapmerge::MapContribution> to_native(const std::vector<Contribution>& contributors) {
+  std::vector<mapmerge::MapContribution> out;
+  for (const Contribution& c : contributors) {
+    mapmerge::MapContribution mc;
+    mc.robot_id(c.robot_id);
+    mc.session_id(c.session_id);
+    mc.sequence_number(c.sequence);
+    out.push_back(std::move(mc));
+  }
+  return out;
+}
+}  // namespace
+
 mapmerge::GlobalMap to_native(const GlobalMapOut& g) {
   mapmerge::GlobalMap m;
   m.version(g.version);
@@ -74,13 +88,28 @@ mapmerge::GlobalMap to_native(const GlobalMapOut& g) {
   m.resolution(g.resolution);
   m.encoding(g.encoding);
   m.data(g.data);
-  for (const Contribution& c : g.contributors) {
-    mapmerge::MapContribution mc;
-    mc.robot_id(c.robot_id);
-    mc.session_id(c.session_id);
-    mc.sequence_number(c.sequence);
-    m.contributors().push_back(mc);
+  m.contributors(to_native(g.contributors));
+  return m;
+}
+
+mapmerge::GlobalMapDelta to_native_delta(const GlobalMapOut& g) {
+  mapmerge::GlobalMapDelta m;
+  m.version(g.version);
+  m.base_version(g.delta->base_version);
+  m.base_hash(g.delta->base_hash);
+  m.hash(g.hash);
+  m.stamp(make_time<mapmerge::Time>(g.stamp_unix));
+  m.frame_id(g.frame_id);
+  m.resolution(g.resolution);
+  m.blocks().reserve(g.delta->blocks.size());
+  for (const BlockPatch& p : g.delta->blocks) {
+    mapmerge::MapBlock b;
+    b.block(p.block);
+    b.state(static_cast<std::uint8_t>(p.state));
+    b.records(p.records);
+    m.blocks().push_back(std::move(b));
   }
+  m.contributors(to_native(g.contributors));
   return m;
 }
 

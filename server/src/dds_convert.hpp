@@ -14,6 +14,8 @@ MapSample from_ros(const octomap_msgs::msg::dds_::Octomap_& m, const std::string
                    const std::string& topic_robot, std::uint64_t sequence);
 
 mapmerge::GlobalMap to_native(const GlobalMapOut& g);
+/// g's delta (g.delta must hold one).
+mapmerge::GlobalMapDelta to_native_delta(const GlobalMapOut& g);
 octomap_msgs::msg::dds_::Octomap_ to_ros(const GlobalMapOut& g);
 mapmerge::RobotPose to_native(const PoseOut& p, std::uint64_t version, const std::string& global_frame);
 geometry_msgs::msg::dds_::TransformStamped_ to_tf(const PoseOut& p, const std::string& global_frame);

@@ -159,6 +159,7 @@ struct DdsIo::Impl {
   RequestListener request_listener;
   std::vector<std::unique_ptr<fdds::DataReaderListener>> reader_listeners;
   fdds::DataWriter* global_writer = nullptr;
+  fdds::DataWriter* delta_writer = nullptr;  ///< null when DDS refused it (e.g. an older keystore)
   fdds::DataWriter* ros_global_writer = nullptr;
   fdds::DataWriter* pose_writer = nullptr;
   fdds::DataWriter* tf_writer = nullptr;
@@ -214,6 +215,12 @@ DdsIo::DdsIo(const NetworkConfig& config, Callbacks callbacks)
   impl_->global_writer = p.create_writer(p.topic<mapmerge::GlobalMapPubSubType>(wire::kGlobalMapTopic), TopicKind::State);
   impl_->ros_global_writer = p.create_writer(
       p.topic<octomap_msgs::msg::dds_::Octomap_PubSubType>(wire::kRosGlobalMapTopic), TopicKind::State);
+  try {  // receivers fall back to the full map without it: a keystore from before it must not stop us
+    impl_->delta_writer =
+        p.create_writer(p.topic<mapmerge::GlobalMapDeltaPubSubType>(wire::kGlobalDeltaTopic), TopicKind::Event);
+  } catch (const wire::DdsError& e) {
+    spdlog::warn("{}: no writer ({}); global maps are sent whole only", wire::kGlobalDeltaTopic, e.what());
+  }
   impl_->pose_writer = p.create_writer(p.topic<mapmerge::RobotPosePubSubType>(wire::kPosesTopic), TopicKind::State);
   impl_->tf_writer = p.create_writer(p.topic<tf2_msgs::msg::dds_::TFMessage_PubSubType>(wire::kTfTopic), TopicKind::Event);
   impl_->status_writer = p.create_writer(p.topic<mapmerge::ServerStatusPubSubType>(wire::kStatusTopic), TopicKind::Event);
@@ -239,6 +246,13 @@ void DdsIo::publish_global(const GlobalMapOut& global) {
   auto ros = convert::to_ros(global);
   impl_->global_writer->write(&native);
   impl_->ros_global_writer->write(&ros);
+}
+
+void DdsIo::publish_delta(const GlobalMapOut& global) {
+  if (!global.delta || impl_->delta_writer == nullptr) return;
+  std::lock_guard<std::mutex> lock(impl_->write_mutex);
+  auto delta = convert::to_native_delta(global);
+  impl_->delta_writer->write(&delta);
 }
 
 void DdsIo::publish_poses(const std::vector<PoseOut>& poses, std::uint64_t version, const std::string& global_frame) {

@@ -109,6 +109,7 @@ std::optional<GlobalMapOut> GlobalMapBuilder::build(const Registry& registry, st
     fc.max_work = config_.limits.max_fusion_work;
     fusion_ = std::make_unique<GlobalFusion>(resolution, fc);
     refused_.clear();
+    last_built_.reset();  // nothing encoded to patch
     g.contributors.clear();
     maps = placed_maps(registry, g.contributors);  // no fused poses to keep in a new fusion
   }
@@ -133,6 +134,11 @@ std::optional<GlobalMapOut> GlobalMapBuilder::build(const Registry& registry, st
   GlobalFusion::Encoded e = fusion_->encode();
   g.data = encoding == Encoding::kOctomapBt ? std::move(e.bt) : encode_map(*fusion_->tree(), encoding);
   g.ros_body = std::move(e.body);
+  g.hash = payload_hash(g.data);
+  if (e.patches && last_built_ && encoding == Encoding::kOctomapBt) {  // blocks of the canonical body only
+    g.delta = GlobalMapOut::Delta{last_built_->first, last_built_->second, std::move(*e.patches)};
+  }
+  last_built_ = std::make_pair(version, g.hash);
   g.version = version;
   g.stamp_unix = unix_now();
   g.frame_id = config_.merge.global_frame;

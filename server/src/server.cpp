@@ -214,6 +214,10 @@ void Server::publish_global() {
   }
   const auto t_stored = Clock::now();
   last_global_ = std::move(global);
+  dds_->publish_delta(*last_global_);
+  const std::size_t delta_blocks = last_global_->delta ? last_global_->delta->blocks.size() : 0;
+  const bool delta = last_global_->delta.has_value();
+  last_global_->delta.reset();  // sent once; republications send the map
   republish();
   const auto t_published = Clock::now();
   builder_.release_replaced();
@@ -229,10 +233,11 @@ void Server::publish_global() {
   const auto st = builder_.last_stages();
   auto ms = [](Clock::duration d) { return std::chrono::duration<double, std::milli>(d).count(); };
   spdlog::info("global map {} published: {} robots ({} re-fused, {} by difference, {} of them on the payload bytes), "
-               "{} bytes in {:.0f} ms (fuse {:.0f}, encode {:.0f}, poses {:.0f}, store {:.0f}, publish {:.0f}); poses of "
+               "{} bytes{} in {:.0f} ms (fuse {:.0f}, encode {:.0f}, poses {:.0f}, store {:.0f}, publish {:.0f}); poses of "
                "{} robots{}{}",
                version_, last_global_->contributors.size(), st.updated, st.incremental, st.from_bodies,
                last_global_->data.size(),
+               delta ? fmt::format(" (and {} changed blocks)", delta_blocks) : std::string(),
                ms(t_published - t0), st.fuse_s * 1e3, st.encode_s * 1e3,
                ms(t_built - t0) - (st.fuse_s + st.encode_s) * 1e3, ms(t_stored - t_built), ms(t_published - t_stored),
                poses.size(), unaligned.empty() ? "" : ", not aligned:", unaligned);

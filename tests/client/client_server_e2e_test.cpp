@@ -5,6 +5,7 @@
 
 #include <atomic>
 #include <map>
+#include <mutex>
 #include <sstream>
 #include <thread>
 
@@ -12,6 +13,7 @@
 #include <octomap/OcTree.h>
 
 #include "mapmerge/client/client.hpp"
+#include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/map_io.hpp"
 #include "server_fixture.hpp"
 
@@ -98,6 +100,74 @@ TEST_F(ClientServerE2E, RobotsOfBothVendorsAreAlignedAndSurviveAServerRestart) {
   ASSERT_TRUE(r1.wait_for_server(kConnect) && r2.wait_for_server(kConnect)) << server_log();
   ASSERT_TRUE(eventually([&] { return r2.statistics().poses_received > before && aligned(r2); }, kAlignment))
       << server_log();
+}
+
+/// Two trees node for node: same size, same structure, same log-odds (inner nodes too).
+std::size_t differing_nodes(const octomap::OcTree& a, const octomap::OcTree& b) {
+  if (a.size() != b.size()) return std::max(a.size(), b.size());
+  std::size_t differing = 0;
+  auto ib = b.begin_tree();
+  for (auto ia = a.begin_tree(), end = a.end_tree(); ia != end; ++ia, ++ib) {
+    differing += ia.getKey() != ib.getKey() || ia.getDepth() != ib.getDepth() || ia.isLeaf() != ib.isLeaf() ||
+                 ia->getLogOdds() != ib->getLogOdds();
+  }
+  return differing;
+}
+
+TEST_F(ClientServerE2E, ObserversPatchTheGlobalMapFromItsChangedBlocksAsIfTheyDecodedIt) {
+  // One robot (the reference: the global map is its map) shrinks and grows its map. Two
+  // observers, one per vendor, let go of every map they get: they patch the next version from
+  // the changed blocks. A third keeps every map it gets: it cannot patch in place and decodes
+  // each version whole. All must hold the same trees, node for node.
+  start_server();
+  client::Options o;
+  o.domain = test::dds_domain();
+  Client fast_patcher(o);
+  CycloneClient cyclone_patcher(o);
+  Client keeper(o);
+  std::mutex kept_mutex;
+  std::map<std::uint64_t, std::shared_ptr<const client::GlobalMap>> kept;  // by version
+  keeper.on_global_map([&](const std::shared_ptr<const client::GlobalMap>& g) {
+    std::lock_guard<std::mutex> lock(kept_mutex);
+    kept[g->version] = g;
+  });
+  o.robot_id = "r1";
+  Client robot(o);
+  const auto full = read_octree_file(map_path("r1"));
+  double lo[3], hi[3];
+  full->getMetricMin(lo[0], lo[1], lo[2]);
+  full->getMetricMax(hi[0], hi[1], hi[2]);
+  const auto shrunk = crop_and_transform(
+      *full, Eigen::AlignedBox3d(Eigen::Vector3d(lo[0], lo[1], lo[2]), Eigen::Vector3d(lo[0] + 0.8 * (hi[0] - lo[0]), hi[1], hi[2])),
+      Eigen::Isometry3d::Identity());
+  const std::vector<const octomap::OcTree*> updates{full.get(), shrunk.get(), full.get(), shrunk.get()};
+  for (std::size_t k = 0; k < updates.size(); ++k) {
+    const std::uint64_t seq = robot.publish(*updates[k]).sequence_number;
+    const auto holds = [&](const auto& c) {
+      const auto g = c.global_map();
+      return g && !g->contributors.empty() && g->contributors[0].sequence_number >= seq;
+    };
+    ASSERT_TRUE(eventually([&] { return holds(fast_patcher) && holds(cyclone_patcher) && holds(keeper); }, kAlignment))
+        << "update " << k << "\n" << server_log();
+    for (const Client* c : {static_cast<const Client*>(&fast_patcher), static_cast<const Client*>(&cyclone_patcher)}) {
+      const auto mine = c->global_map();
+      std::shared_ptr<const client::GlobalMap> theirs;
+      ASSERT_TRUE(eventually([&] {
+        std::lock_guard<std::mutex> lock(kept_mutex);
+        const auto it = kept.find(mine->version);
+        if (it != kept.end()) theirs = it->second;
+        return theirs != nullptr;
+      }, kConnect)) << "version " << mine->version;
+      EXPECT_EQ(differing_nodes(*mine->tree, *theirs->tree), 0U) << client::to_string(c->vendor()) << ", update " << k;
+    }
+  }
+  EXPECT_EQ(keeper.statistics().global_maps_patched, 0U) << "a held map is never patched in place";
+  for (const Client* c : {static_cast<const Client*>(&fast_patcher), static_cast<const Client*>(&cyclone_patcher)}) {
+    const auto st = c->statistics();
+    EXPECT_GE(st.global_maps_patched, updates.size() - 1) << client::to_string(c->vendor()) << ": each change after the first map";
+    EXPECT_EQ(st.global_deltas_rejected, 0U);
+    EXPECT_EQ(st.global_maps_rejected, 0U);
+  }
 }
 
 }  // namespace

@@ -251,6 +251,12 @@ std::size_t check_records(const std::vector<std::uint8_t>& records, std::string&
 
 }  // namespace
 
+std::uint64_t payload_hash(const std::uint8_t* data, std::size_t size) {
+  std::uint64_t h = 1469598103934665603ULL;
+  for (std::size_t i = 0; i < size; ++i) h = (h ^ data[i]) * 1099511628211ULL;
+  return h;
+}
+
 std::string check_block_patches(const std::vector<BlockPatch>& patches, std::size_t max_nodes) {
   constexpr std::uint64_t kAxisBlocks = std::uint64_t{1} << kPatchBlockDepth;
   std::unordered_set<std::uint64_t> seen;

@@ -83,7 +83,13 @@ struct GlobalMap {
   std::string encoding;             ///< wire encoding it arrived in ("octomap-bt", ...)
   std::size_t payload_bytes = 0;    ///< size on the wire [bytes]
   std::vector<Contribution> contributors;
-  std::shared_ptr<const octomap::OcTree> tree;  ///< the decoded, validated map (never null)
+  /// The decoded, validated map (never null). A new version usually comes as the blocks that
+  /// changed: while nobody but the client holds the latest GlobalMap and its tree, the client
+  /// patches that tree in place (O(change), where decoding a whole Freiburg-size map takes
+  /// ~100 ms), so the `tree` of a new version may be the same object as the last one's. Keep a
+  /// GlobalMap (or its tree) only as long as you read it: while one is held, each new version is
+  /// decoded whole instead. Do not read a tree through a weak_ptr.
+  std::shared_ptr<const octomap::OcTree> tree;
 };
 
 /// Construction settings of a client. Plain values; the CLIs fill them from flags.
@@ -128,6 +134,8 @@ struct Statistics {
   std::uint64_t poses_received = 0;
   std::uint64_t global_maps_received = 0;
   std::uint64_t global_maps_rejected = 0;  ///< failed validation (reason via on_warning)
+  std::uint64_t global_maps_patched = 0;   ///< of global_maps_received: patched from the changed blocks
+  std::uint64_t global_deltas_rejected = 0;  ///< changed blocks that failed validation (the map is decoded whole)
 };
 
 using PoseCallback = std::function<void(const Pose&)>;

@@ -34,6 +34,9 @@ class DdsIo {
   std::vector<std::string> service();
 
   void publish_global(const GlobalMapOut& global);
+  /// The change to the previous version (global.delta), if it holds one: receivers holding that
+  /// version patch it (write it before the map itself, which they then need not decode).
+  void publish_delta(const GlobalMapOut& global);
   /// Native poses (one sample per robot) and, for aligned robots, tf global -> <robot frame>.
   void publish_poses(const std::vector<PoseOut>& poses, std::uint64_t version, const std::string& global_frame);
   void publish_status(const StatusOut& status);

@@ -65,6 +65,7 @@ class GlobalMapBuilder {
   std::map<std::string, std::pair<std::weak_ptr<const HeldMap>, Eigen::AlignedBox3d>> extents_;  ///< per robot
   Stages stages_;
   std::vector<std::shared_ptr<const HeldMap>> replaced_;  ///< maps the last build replaced
+  std::optional<std::pair<std::uint64_t, std::uint64_t>> last_built_;  ///< version and hash the fusion last encoded
 };
 
 /// One pose per robot known to the registry.

@@ -2,10 +2,13 @@
 /// What crosses between the DDS layer and the pipeline, free of any DDS vendor type.
 
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <vector>
 
 #include <Eigen/Core>
+
+#include "mapmerge/map/global_delta.hpp"
 
 namespace mapmerge::server {
 
@@ -53,6 +56,15 @@ struct GlobalMapOut {
   std::vector<std::uint8_t> data;     ///< the native payload
   std::vector<std::uint8_t> ros_body; ///< the octomap_msgs body (writeBinaryData)
   std::vector<Contribution> contributors;
+  std::uint64_t hash = 0;             ///< payload_hash(data)
+  /// The change from the version built before (GlobalMapDelta), when a receiver holding that
+  /// version can patch it into this one; published once, with the map, never stored.
+  struct Delta {
+    std::uint64_t base_version = 0;
+    std::uint64_t base_hash = 0;
+    std::vector<BlockPatch> blocks;
+  };
+  std::optional<Delta> delta;
 };
 
 struct MergeReportOut {

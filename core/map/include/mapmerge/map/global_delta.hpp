@@ -41,6 +41,11 @@ inline std::uint64_t patch_block_of(const octomap::OcTreeKey& key) {
   return std::uint64_t{key[0]} >> s | (std::uint64_t{key[1]} >> s) << 16 | (std::uint64_t{key[2]} >> s) << 32;
 }
 
+/// 64-bit FNV-1a of `size` bytes: names a global map's payload, so a receiver patches only the
+/// exact map a patch was made from (GlobalMapDelta's base_hash and hash).
+std::uint64_t payload_hash(const std::uint8_t* data, std::size_t size);
+inline std::uint64_t payload_hash(const std::vector<std::uint8_t>& data) { return payload_hash(data.data(), data.size()); }
+
 /// Why `patches` cannot be applied (empty when they can): a block id out of the key space or
 /// named twice, an unknown state, records on a uniform block, or records that are not exactly
 /// one well-formed subtree of a block (every byte consumed, no deeper than the tree, no empty

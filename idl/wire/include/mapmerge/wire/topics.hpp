@@ -22,6 +22,7 @@ std::optional<std::string> robot_of_ros_octomap_topic(
     const std::string& topic, const std::string& pattern = "rt/{robot}/octomap_binary");
 
 inline constexpr const char* kGlobalMapTopic = "rt/mapmerge/global";      ///< mapmerge::GlobalMap
+inline constexpr const char* kGlobalDeltaTopic = "rt/mapmerge/global_delta";  ///< mapmerge::GlobalMapDelta
 inline constexpr const char* kPosesTopic = "rt/mapmerge/poses";           ///< mapmerge::RobotPose
 inline constexpr const char* kStatusTopic = "rt/mapmerge/status";         ///< mapmerge::ServerStatus
 inline constexpr const char* kRequestTopic = "rt/mapmerge/request";       ///< mapmerge::MapRequest
