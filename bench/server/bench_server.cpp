@@ -7,7 +7,10 @@
 #include <cstdio>
 #include <fstream>
 #include <map>
+#include <condition_variable>
+#include <mutex>
 #include <numeric>
+#include <optional>
 #include <random>
 #include <sstream>
 
@@ -15,6 +18,7 @@
 
 #include "child_process.hpp"
 #include "fleet.hpp"
+#include "mapmerge/client/client.hpp"
 #include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/map_codec.hpp"
 #include "proc_stats.hpp"
@@ -34,13 +38,48 @@ struct Options {
   double grow = 1.0;          ///< an incremental update grows a robot's map by this much [m]
   double period_s = 0.0;      ///< an update starts this long after the last one started (0: at once)
   std::string log_level = "info";  ///< the server's
+  std::string receiver = "client";  ///< who receives the global map: "client" (mapmerge::Client) or "raw" (decodes each)
+};
+
+/// The fleet's side: a mapmerge::Client observer (patches each new version from its changed
+/// blocks when it can), noting when its callback saw each robot's map sequence.
+class ClientReceiver {
+ public:
+  explicit ClientReceiver(int domain) : client_(options(domain)) {
+    client_.on_global_map([this](const std::shared_ptr<const mapmerge::client::GlobalMap>& g) {
+      const auto now = Clock::now();
+      std::lock_guard<std::mutex> lock(mutex_);
+      for (const auto& c : g->contributors) seen_.emplace(std::make_pair(c.robot_id, c.sequence_number), now);
+      cv_.notify_all();
+    });  // the map is let go at once: the client may patch it in place
+  }
+  /// When the client's callback first held `robot` at `sequence`, if within `timeout`.
+  std::optional<Clock::time_point> wait(const std::string& robot, std::uint64_t sequence, std::chrono::seconds timeout) {
+    std::unique_lock<std::mutex> lock(mutex_);
+    const auto key = std::make_pair(robot, sequence);
+    if (!cv_.wait_for(lock, timeout, [&] { return seen_.count(key) != 0; })) return std::nullopt;
+    return seen_.at(key);
+  }
+  mapmerge::client::Statistics statistics() const { return client_.statistics(); }
+
+ private:
+  static mapmerge::client::Options options(int domain) {
+    mapmerge::client::Options o;
+    o.domain = domain;
+    return o;
+  }
+  std::mutex mutex_;
+  std::condition_variable cv_;
+  std::map<std::pair<std::string, std::uint64_t>, Clock::time_point> seen_;
+  mapmerge::Client client_;  // last: its callbacks stop before the members they use go
 };
 
 struct Result {
   int n = 0, aligned = 0;
   double first_global_s = 0, all_aligned_s = -1, map_kb_per_robot = 0;
   std::vector<double> incremental_ms;
-  std::vector<double> encode_ms, arrival_ms, receiver_decode_ms;  ///< parts of incremental_ms
+  std::vector<double> encode_ms, arrival_ms, receiver_decode_ms;  ///< parts of incremental_ms (raw receiver)
+  std::uint64_t patched = 0, received = 0;  ///< global maps the client receiver patched, of those it received
   double cpu_s = 0, peak_rss_mb = 0, end_rss_mb = 0, max_rot_deg = 0, max_trans_m = 0;
   std::map<std::string, std::vector<double>> stages;  ///< server-side stage -> ms per incremental update
 };
@@ -132,8 +171,8 @@ void first_alignment(const Options& o, Result& r, mt::FleetListener& op, const s
 
 /// Known robots in turn publish their next map (grown, then back to the original: a changed map
 /// each time, as a mapping robot sends); latency until the global map holds that sequence.
-void incremental(const Options& o, Result& r, mt::FleetListener& op, const std::vector<BenchRobot>& fleet,
-                 std::vector<std::unique_ptr<mt::RobotPublisher>>& pubs) {
+void incremental(const Options& o, Result& r, mt::FleetListener& op, ClientReceiver* client,
+                 const std::vector<BenchRobot>& fleet, std::vector<std::unique_ptr<mt::RobotPublisher>>& pubs) {
   std::vector<mt::RobotMap> robots;
   for (const auto& b : fleet) robots.push_back(b.map);
   const auto global = op.global();
@@ -157,9 +196,16 @@ void incremental(const Options& o, Result& r, mt::FleetListener& op, const std::
                                             mapmerge::Encoding::kOctomapBt);
     const auto t_encoded = Clock::now();
     pubs[i]->publish_bytes(bytes, robots[i].id, "s1", seq);
+    const auto ms = [](Clock::duration d) { return std::chrono::duration<double, std::milli>(d).count(); };
+    if (client != nullptr) {  // the fleet's receiver: our client library
+      if (const auto t = client->wait(robots[i].id, seq, std::chrono::seconds(120))) {
+        r.incremental_ms.push_back(ms(*t - t0));
+        r.encode_ms.push_back(ms(t_encoded - t0));
+      }
+      continue;
+    }
     if (op.wait_for([&] { return op.global().contributor_sequence[robots[i].id] == seq; }, std::chrono::seconds(120))) {
       const auto g = op.global();
-      const auto ms = [](Clock::duration d) { return std::chrono::duration<double, std::milli>(d).count(); };
       r.incremental_ms.push_back(ms(g.received - t0));
       r.encode_ms.push_back(ms(t_encoded - t0));
       r.arrival_ms.push_back(ms(g.arrived - t_encoded));
@@ -183,11 +229,20 @@ Result run(const Options& o, int n) {
                             dir + "/bench.yaml", "--reference", "r1", "--log-level", o.log_level},
                            dir + "/server.log");
   mt::FleetListener op(o.domain);
+  std::unique_ptr<ClientReceiver> client;
+  if (o.receiver == "client") {
+    client = std::make_unique<ClientReceiver>(o.domain);
+    op.observe_globals([](std::uint64_t, const std::map<std::string, std::uint64_t>&) {}, false);  // no decoding here
+  }
   std::vector<std::unique_ptr<mt::RobotPublisher>> pubs;
   for (const auto& rb : robots) pubs.push_back(std::make_unique<mt::RobotPublisher>(o.domain, rb.map.id));
   std::this_thread::sleep_for(std::chrono::seconds(1));  // discovery settles
   first_alignment(o, r, op, robots, pubs);
-  incremental(o, r, op, robots, pubs);
+  incremental(o, r, op, client.get(), robots, pubs);
+  if (client) {
+    r.patched = client->statistics().global_maps_patched;
+    r.received = client->statistics().global_maps_received;
+  }
   const auto stats = mapmerge::bench::proc_stats(server.pid());
   r.cpu_s = stats.cpu_s;
   r.peak_rss_mb = stats.hwm_mb;
@@ -229,6 +284,10 @@ int main(int argc, char** argv) {
   app.add_option("--period", o.period_s,
                  "seconds from one update's start to the next (0: each right after the last was received)");
   app.add_option("--grow", o.grow, "an incremental update grows the robot's map by this much [m]");
+  app.add_option("--receiver", o.receiver,
+                 "who receives the global map: client (a mapmerge::Client observer, which patches changed blocks) or raw "
+                 "(a listener decoding every map, with the latency split into arrival and decode)")
+      ->check(CLI::IsMember({"client", "raw"}));
   CLI11_PARSE(app, argc, argv);
   std::printf("map %s; columns: robots | aligned | first global [s] | all merged [s] | incremental updates measured, "
               "median/p95/max [ms] | "
@@ -244,8 +303,13 @@ int main(int argc, char** argv) {
   std::printf("\nserver stages of incremental updates, median ms (map check/store: every accepted map)\n");
   for (const Result& r : results) {
     std::printf("N=%2d:", r.n);
-    std::printf(" [outside the server: robot encode %.1f; publish -> global arrived %.1f; receiver decode %.1f]",
-                median(r.encode_ms), median(r.arrival_ms), median(r.receiver_decode_ms));
+    if (o.receiver == "client") {
+      std::printf(" [outside the server: robot encode %.1f; client receiver patched %llu of %llu global maps]",
+                  median(r.encode_ms), static_cast<unsigned long long>(r.patched), static_cast<unsigned long long>(r.received));
+    } else {
+      std::printf(" [outside the server: robot encode %.1f; publish -> global arrived %.1f; receiver decode %.1f]",
+                  median(r.encode_ms), median(r.arrival_ms), median(r.receiver_decode_ms));
+    }
     for (const auto& [stage, v] : r.stages) {
       std::printf(" %s %.1f;", stage.c_str(), median(v));
     }

@@ -269,6 +269,45 @@ TEST(BlockPatches, MalformedPatchesAreRejectedWithAReason) {
   rejects(many, "more than 100 nodes");
 }
 
+TEST_F(GlobalFusionTest, RandomPatchesAreRejectedOrLeaveAWellFormedTree) {
+  // Hostile or garbled patches: check_block_patches() must reject every one that apply could not
+  // take; whatever it accepts leaves a tree that encodes and decodes to the same tree.
+  const Robot r2 = cut(*world_, "r2", -8, 6, 1.1);
+  octomap::OcTree tree(*r2.map);
+  tree.toMaxLikelihood();
+  tree.prune();
+  std::vector<std::uint64_t> blocks;  // blocks of the map, and a few outside it
+  for (auto it = tree.begin_leafs(), end = tree.end_leafs(); it != end && blocks.size() < 64; ++it) {
+    blocks.push_back(patch_block_of(it.getKey()));
+  }
+  blocks.push_back(0);
+  blocks.push_back(patch_block_of(octomap::OcTreeKey(65535, 65535, 65535)));
+  std::mt19937 rng(7);
+  std::size_t accepted = 0;
+  for (int round = 0; round < 2000; ++round) {
+    std::vector<BlockPatch> patches(1 + rng() % 6);
+    for (BlockPatch& p : patches) {
+      p.block = blocks[rng() % blocks.size()];
+      p.state = static_cast<BlockState>(rng() % 5);
+      const std::size_t n = rng() % 3 == 0 ? 0 : 2 * (rng() % 12) + rng() % 2;
+      for (std::size_t i = 0; i < n; ++i) {  // mostly leaves, some inner children
+        std::uint8_t b = 0;
+        for (int c = 0; c < 4; ++c) b = static_cast<std::uint8_t>(b | (rng() % 7 == 0 ? 3U : rng() % 3) << (2 * c));
+        p.records.push_back(b);
+      }
+    }
+    if (!check_block_patches(patches, 1'000'000).empty()) continue;
+    ++accepted;
+    apply_block_patches(tree, patches);
+    const auto bytes = encode_map(tree, Encoding::kOctomapBt);
+    const DecodeResult again = decode_map(bytes, Encoding::kOctomapBt, DecodeLimits{});
+    ASSERT_TRUE(again.ok()) << "round " << round << ": " << again.reason;
+    ASSERT_EQ(again.tree->size(), tree.size()) << "round " << round;
+    ASSERT_TRUE(encode_map(*again.tree, Encoding::kOctomapBt) == bytes) << "round " << round;
+  }
+  EXPECT_GT(accepted, 30U) << "the generator must also make valid patches";
+}
+
 /// `tree` as a robot sends it: encoded as `.bt`, then decoded (tree and binary body).
 std::pair<Tree, std::shared_ptr<const std::vector<std::uint8_t>>> sent(const octomap::OcTree& tree) {
   DecodeResult d = decode_map(encode_map(tree, Encoding::kOctomapBt), Encoding::kOctomapBt, DecodeLimits{});
