@@ -1,7 +1,9 @@
 #include "mapmerge/map/global_fusion.hpp"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
+#include <cstring>
 #include <unordered_map>
 
 #include "leaf_mapper.hpp"
@@ -121,6 +123,9 @@ class BodyDiff {
     ea_[kOccupied] = evidence(before.occupied_log_odds(), config);
     eb_[kFree] = evidence(after.free_log_odds(), config);
     eb_[kOccupied] = evidence(after.occupied_log_odds(), config);
+    for (unsigned depth = 0; depth <= kTreeDepth; ++depth) {  // per leaf, as TreeDiff counts it
+      leaf_work_[depth] = detail::leaf_fusion_work(std::max(1.0, std::ceil(node_size(depth) / target_res_)));
+    }
   }
 
   /// False when a body is not a complete tree (not what decode_map validated): then nothing
@@ -158,9 +163,7 @@ class BodyDiff {
   }
   /// A leaf (or unknown space) of the new map at `depth`: its fusion work.
   void count(unsigned c, unsigned depth) {
-    if (c == kOccupied || (c == kFree && config_.fuse_free)) {
-      work += detail::leaf_fusion_work(std::max(1.0, std::ceil(node_size(depth) / target_res_)));
-    }
+    if (c == kOccupied || (c == kFree && config_.fuse_free)) work += leaf_work_[depth];
   }
   /// OcTree::getNodeSize and OcTree::keyToCoord(key, depth) of the new map's grid.
   double node_size(unsigned depth) const { return std::ldexp(resolution_, static_cast<int>(kTreeDepth - depth)); }
@@ -181,6 +184,7 @@ class BodyDiff {
   void both(std::size_t& pa, std::size_t& pb, const octomap::OcTreeKey& key, unsigned depth) {
     if (depth > 15) ok_ = false;  // an inner node below the last level
     if (!ok_) return;
+    if (depth == kSkipDepth && same_subtree(pa, pb, depth)) return;
     const std::size_t na = pa, nb = pb;
     pa += 2;
     pb += 2;
@@ -199,6 +203,40 @@ class BodyDiff {
         compare(ca, cb, k, depth + 1);
       }
     }
+  }
+  /// Where most of a grown map's blocks (subtrees at this depth, 1.6 m at 5 cm) are byte for
+  /// byte what they were: such a block is skipped with one memcmp after counting its length.
+  static constexpr unsigned kSkipDepth = 11;
+  /// If the subtrees at pa (old body) and pb (new body), both at `depth`, are the same bytes:
+  /// moves past them, adds the new one's fusion work, and returns true (no evidence changed).
+  bool same_subtree(std::size_t& pa, std::size_t& pb, unsigned depth) {
+    if (pa + 2 > a_.size() || pb + 2 > b_.size() || a_[pa] != b_[pb] || a_[pa + 1] != b_[pb + 1]) return false;
+    if (ea_[kFree] != eb_[kFree] || ea_[kOccupied] != eb_[kOccupied]) return false;  // same codes, other evidence
+    // The old subtree's length and leaves, level by level (a pending count per depth, as a scan).
+    std::array<std::uint32_t, kTreeDepth + 2> pending{};
+    pending[depth] = 1;
+    unsigned d = depth;
+    std::size_t pos = pa;
+    double w = 0.0;
+    for (;;) {
+      while (d >= depth && pending[d] == 0) --d;
+      if (d < depth || d > kTreeDepth) break;
+      --pending[d];
+      if (pos + 2 > a_.size() || d >= kTreeDepth) return false;  // not a complete tree: let the walk flag it
+      const unsigned r = a_[pos] | unsigned{a_[pos + 1]} << 8;
+      pos += 2;
+      const unsigned lo = r & 0x5555U, hi = (r >> 1) & 0x5555U;
+      const int inner = __builtin_popcount(lo & hi), occupied = __builtin_popcount(hi & ~lo),
+                free = __builtin_popcount(lo & ~hi);
+      w += leaf_work_[d + 1] * (occupied + (config_.fuse_free ? free : 0));
+      if (inner > 0) pending[++d] = static_cast<std::uint32_t>(inner);
+    }
+    const std::size_t length = pos - pa;
+    if (pb + length > b_.size() || std::memcmp(a_.data() + pa, b_.data() + pb, length) != 0) return false;
+    pa += length;
+    pb += length;
+    work += w;
+    return true;
   }
   /// One map (`before` or not) has an inner node at (key, depth), at pos; the other is uniform
   /// (`other`: unknown, free or occupied) over it.
@@ -227,6 +265,7 @@ class BodyDiff {
   const FuseConfig& config_;
   std::int64_t ea_[3] = {0, 0, 0};
   std::int64_t eb_[3] = {0, 0, 0};
+  double leaf_work_[kTreeDepth + 1] = {};  ///< fusion work of one leaf of the new map, by depth
   bool ok_ = true;
 };
 
