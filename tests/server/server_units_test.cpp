@@ -15,6 +15,8 @@
 #include "five_robots.hpp"
 #include "fleet.hpp"
 #include "mapmerge/map/crop.hpp"
+#include "mapmerge/map/global_fusion.hpp"
+#include "mapmerge/map/map_codec.hpp"
 #include "mapmerge/map/map_io.hpp"
 #include "mapmerge/server/config.hpp"
 #include "mapmerge/server/export.hpp"
@@ -440,6 +442,72 @@ TEST(Store, SurvivesReopeningAndKeepsTheLastOfEverything) {
   EXPECT_EQ(snap.global->contributors.at(0).sequence, 7u);
   ASSERT_EQ(snap.poses.size(), 1u);
   EXPECT_EQ(snap.poses[0].state, PoseState::kAligned);
+}
+
+TEST(Store, CheckpointsCopyTheLogIntoTheDatabaseAndLoseNothing) {
+  // The store checkpoints on request (the server's main loop), not after each commit: the log
+  // holds the writes until then, a checkpoint copies all of them, and a store reopened either
+  // way holds the last of everything.
+  const std::string dir = test::temp_dir("store_checkpoint");
+  StoreConfig cfg;
+  cfg.state_dir = dir;
+  MapSample m;
+  m.robot_id = m.topic_robot = "r1";
+  m.session_id = "s";
+  m.encoding = "octomap-bt";
+  m.data.assign(300'000, 7);  // ~75 pages per map: SQLite's default would have checkpointed
+  {
+    Store s(cfg);
+    for (std::uint64_t seq = 1; seq <= 30; ++seq) {
+      m.sequence = seq;
+      ASSERT_TRUE(s.save_map(m));
+    }
+    const std::uintmax_t wal = std::filesystem::file_size(std::filesystem::path(dir) / "state.sqlite-wal");
+    EXPECT_GT(wal, 30u * 300'000u) << "no checkpoint ran after a commit";
+    const Store::Checkpoint c = s.checkpoint();
+    ASSERT_TRUE(c.ok);
+    EXPECT_GT(c.wal_frames, 30u * 70u);
+    EXPECT_EQ(c.checkpointed_frames, c.wal_frames);
+    m.sequence = 31;
+    ASSERT_TRUE(s.save_map(m));  // after the checkpoint, in the log only
+  }
+  Store s(cfg);
+  const StoreSnapshot snap = s.load();
+  ASSERT_EQ(snap.maps.size(), 1u);
+  EXPECT_EQ(snap.maps[0].sequence, 31u);
+  EXPECT_EQ(snap.maps[0].data, m.data);
+}
+
+TEST(Store, AGlobalMapsRosBodyIsRestoredFromItsPayload) {
+  // The ROS 2 body of a `.bt` global map is its payload without the header: stored once.
+  const std::string dir = test::temp_dir("store_ros_body");
+  StoreConfig cfg;
+  cfg.state_dir = dir;
+  GlobalFusion fusion(0.05);
+  auto tree = std::make_shared<octomap::OcTree>(0.05);
+  for (int i = 0; i < 200; ++i) tree->updateNode(octomap::point3d(0.05f * i, 0.1f, 0.2f), i % 3 != 0);
+  ASSERT_TRUE(fusion.set("r1", tree, Eigen::Matrix4d::Identity()).ok);
+  GlobalFusion::Encoded e = fusion.encode();
+  ASSERT_FALSE(e.body.empty());
+  GlobalMapOut g;
+  g.version = 3;
+  g.encoding = "octomap-bt";
+  g.data = e.bt;
+  g.ros_body = e.body;
+  GlobalMapOut zstd = g;  // another encoding: its body is stored as it is
+  zstd.encoding = "octomap-bt+zstd";
+  zstd.data = encode_map(*fusion.tree(), Encoding::kOctomapBtZstd);
+  for (const GlobalMapOut& out : {g, zstd}) {
+    {
+      Store s(cfg);
+      ASSERT_TRUE(s.save_global(out, {}));
+    }
+    Store s(cfg);
+    const StoreSnapshot snap = s.load();
+    ASSERT_TRUE(snap.global.has_value());
+    EXPECT_EQ(snap.global->data, out.data) << out.encoding;
+    EXPECT_EQ(snap.global->ros_body, out.ros_body) << out.encoding;
+  }
 }
 
 TEST(Store, EdgesKeepTheirQualityVerdictAndTheirTries) {

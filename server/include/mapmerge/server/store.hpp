@@ -72,6 +72,16 @@ class Store {
   bool save_global(const GlobalMapOut& global, const std::vector<PoseOut>& poses);
   /// Writes what is pending; true when nothing is left.
   bool retry();
+  /// Copies the write-ahead log into the database file (SQLite's passive checkpoint: never waits
+  /// for readers). Call it off the update path (the server does, every status period); the
+  /// store checkpoints by itself only once the log reaches 64 MB. Crash safety is the same
+  /// either way: a log not yet copied is replayed when the store is opened.
+  struct Checkpoint {
+    bool ok = false;
+    std::size_t wal_frames = 0;           ///< pages in the log
+    std::size_t checkpointed_frames = 0;  ///< of them, in the database now
+  };
+  Checkpoint checkpoint();
   StoreHealth health() const;
   StoreSnapshot load();
   std::string path() const { return path_; }
