@@ -406,16 +406,27 @@ TEST(Scheduler, IdleWorkRunsOnSpareThreadsAndNeverStarvesARobot) {
   EXPECT_EQ(s.stats().jobs_run, 1u);
 }
 
-TEST(Store, SurvivesReopeningAndKeepsTheLastOfEverything) {
-  const std::string dir = test::temp_dir("store_unit");
+/// A store in a fresh directory of its own.
+StoreConfig fresh_store(const std::string& name) {
   StoreConfig cfg;
-  cfg.state_dir = dir;
+  cfg.state_dir = test::temp_dir(name);
+  return cfg;
+}
+
+/// Robot r1's map update `sequence` of session "s" holding `data`.
+MapSample r1_map(std::uint64_t sequence, std::vector<std::uint8_t> data) {
   MapSample m;
   m.robot_id = m.topic_robot = "r1";
   m.session_id = "s";
-  m.sequence = 7;
+  m.sequence = sequence;
   m.encoding = "octomap-bt";
-  m.data = {1, 2, 3};
+  m.data = std::move(data);
+  return m;
+}
+
+TEST(Store, SurvivesReopeningAndKeepsTheLastOfEverything) {
+  const StoreConfig cfg = fresh_store("store_unit");
+  MapSample m = r1_map(7, {1, 2, 3});
   GlobalMapOut g;
   g.version = 12;
   g.data = {9, 9};
@@ -448,21 +459,15 @@ TEST(Store, CheckpointsCopyTheLogIntoTheDatabaseAndLoseNothing) {
   // The store checkpoints on request (the server's main loop), not after each commit: the log
   // holds the writes until then, a checkpoint copies all of them, and a store reopened either
   // way holds the last of everything.
-  const std::string dir = test::temp_dir("store_checkpoint");
-  StoreConfig cfg;
-  cfg.state_dir = dir;
-  MapSample m;
-  m.robot_id = m.topic_robot = "r1";
-  m.session_id = "s";
-  m.encoding = "octomap-bt";
-  m.data.assign(300'000, 7);  // ~75 pages per map: SQLite's default would have checkpointed
+  const StoreConfig cfg = fresh_store("store_checkpoint");
+  MapSample m = r1_map(0, std::vector<std::uint8_t>(300'000, 7));  // ~75 pages: SQLite's default would have checkpointed
   {
     Store s(cfg);
     for (std::uint64_t seq = 1; seq <= 30; ++seq) {
       m.sequence = seq;
       ASSERT_TRUE(s.save_map(m));
     }
-    const std::uintmax_t wal = std::filesystem::file_size(std::filesystem::path(dir) / "state.sqlite-wal");
+    const std::uintmax_t wal = std::filesystem::file_size(std::filesystem::path(cfg.state_dir) / "state.sqlite-wal");
     EXPECT_GT(wal, 30u * 300'000u) << "no checkpoint ran after a commit";
     const Store::Checkpoint c = s.checkpoint();
     ASSERT_TRUE(c.ok);
@@ -480,9 +485,7 @@ TEST(Store, CheckpointsCopyTheLogIntoTheDatabaseAndLoseNothing) {
 
 TEST(Store, AGlobalMapsRosBodyIsRestoredFromItsPayload) {
   // The ROS 2 body of a `.bt` global map is its payload without the header: stored once.
-  const std::string dir = test::temp_dir("store_ros_body");
-  StoreConfig cfg;
-  cfg.state_dir = dir;
+  const StoreConfig cfg = fresh_store("store_ros_body");
   GlobalFusion fusion(0.05);
   auto tree = std::make_shared<octomap::OcTree>(0.05);
   for (int i = 0; i < 200; ++i) tree->updateNode(octomap::point3d(0.05f * i, 0.1f, 0.2f), i % 3 != 0);
@@ -511,8 +514,7 @@ TEST(Store, AGlobalMapsRosBodyIsRestoredFromItsPayload) {
 }
 
 TEST(Store, EdgesKeepTheirQualityVerdictAndTheirTries) {
-  StoreConfig cfg;
-  cfg.state_dir = test::temp_dir("store_edges");
+  const StoreConfig cfg = fresh_store("store_edges");
   Edge e = quality_edge("r1", "r2", mapmerge::paper_transform(1, 2, 3, 10, 20, 30));
   e.pivot_source = Eigen::Vector3d(0.5, -1.5, 0.25);
   for (int i = 0; i < 6; ++i) e.information(i, i) = 100.0 * (i + 1);
@@ -547,8 +549,7 @@ TEST(Store, EdgesKeepTheirQualityVerdictAndTheirTries) {
 }
 
 TEST(Store, AStoreOfTheFirstSchemaIsUpgradedAndItsEdgesKept) {
-  StoreConfig cfg;
-  cfg.state_dir = test::temp_dir("store_old_schema");
+  const StoreConfig cfg = fresh_store("store_old_schema");
   const Eigen::Matrix4d T = mapmerge::paper_transform(1, 2, 3, 10, 20, 30);
   {
     sqlite3* db = nullptr;
