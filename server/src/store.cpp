@@ -5,6 +5,7 @@
 #include <cstring>
 #include <filesystem>
 #include <map>
+#include <optional>
 #include <set>
 #include <string_view>
 #include <utility>
@@ -367,16 +368,16 @@ void Store::save_attempt(const PairAttempt& a) {
 }
 
 namespace {
-/// The body of a global map whose payload is a plain `.bt` (what follows its header's "data"
-/// line); empty for any other encoding or a payload without that line.
-std::vector<std::uint8_t> body_of_bt(const GlobalMapOut& g) {
-  if (g.encoding != "octomap-bt") return {};
+/// Where the body of a global map whose payload is a plain `.bt` starts (just after its
+/// header's "data" line); nullopt for any other encoding or a payload without that line.
+std::optional<std::size_t> bt_body_offset(const GlobalMapOut& g) {
+  if (g.encoding != "octomap-bt") return std::nullopt;
   constexpr std::string_view kDataLine = "\ndata\n";
   const std::size_t head = std::min<std::size_t>(g.data.size(), 4096);  // the header is a few lines
   const auto end = g.data.begin() + static_cast<std::ptrdiff_t>(head);
   const auto at = std::search(g.data.begin(), end, kDataLine.begin(), kDataLine.end());
-  if (at == end) return {};
-  return std::vector<std::uint8_t>(at + static_cast<std::ptrdiff_t>(kDataLine.size()), g.data.end());
+  if (at == end) return std::nullopt;
+  return static_cast<std::size_t>(at - g.data.begin()) + kDataLine.size();
 }
 }  // namespace
 
@@ -387,8 +388,9 @@ void Store::write_global(const GlobalMapOut& g, const std::vector<PoseOut>& pose
     s.bind(4, g.resolution).bind(5, g.encoding).bind(6, g.data.data(), g.data.size());
     // The ROS 2 body is most often the `.bt` payload without its header: then it is not written
     // twice (an empty ros_body is taken from the payload on load).
-    const bool derived = body_of_bt(g).size() == g.ros_body.size() &&
-                         std::equal(g.ros_body.begin(), g.ros_body.end(), g.data.end() - static_cast<std::ptrdiff_t>(g.ros_body.size()));
+    const auto body = bt_body_offset(g);
+    const bool derived = body && g.data.size() - *body == g.ros_body.size() &&
+                         std::equal(g.ros_body.begin(), g.ros_body.end(), g.data.begin() + static_cast<std::ptrdiff_t>(*body));
     s.bind(7, g.ros_body.data(), derived ? 0 : g.ros_body.size()).bind(8, contributors_json(g.contributors)).run();
     exec("DELETE FROM poses;");
     for (const PoseOut& p : poses) {
@@ -445,7 +447,9 @@ StoreSnapshot Store::load() {
     g.encoding = s.text(5);
     g.data = s.blob(6);
     g.ros_body = s.blob(7);
-    if (g.ros_body.empty()) g.ros_body = body_of_bt(g);
+    if (const auto body = bt_body_offset(g); g.ros_body.empty() && body) {
+      g.ros_body.assign(g.data.begin() + static_cast<std::ptrdiff_t>(*body), g.data.end());
+    }
     g.contributors = contributors_from(s.text(8));
     snap.global = std::move(g);
   }
