@@ -26,13 +26,6 @@ struct TreeAccess : octomap::OcTree {
 };
 using Base = octomap::OcTreeBaseImpl<octomap::OcTreeNode, octomap::AbstractOccupancyOcTree>;
 
-/// The first voxel key of `block`.
-octomap::OcTreeKey block_key(std::uint64_t block) {
-  return octomap::OcTreeKey(static_cast<octomap::key_type>((block & 0xFFFFU) << kBlockShift),
-                            static_cast<octomap::key_type>(((block >> 16) & 0xFFFFU) << kBlockShift),
-                            static_cast<octomap::key_type>(((block >> 32) & 0xFFFFU) << kBlockShift));
-}
-
 /// Child index of the node at `depth` on the way to `key`.
 unsigned child_at(const octomap::OcTreeKey& key, unsigned depth) {
   return octomap::computeChildIdx(key, static_cast<int>(kTreeDepth - 1 - depth));
@@ -43,7 +36,7 @@ class Patcher {
   explicit Patcher(octomap::OcTree& tree) : tree_(tree) {}
 
   void put(const BlockPatch& patch) {
-    const octomap::OcTreeKey key = block_key(patch.block);
+    const octomap::OcTreeKey key = patch_block_key(patch.block);
     octomap::OcTreeNode* node = root();
     if (node == nullptr) {
       if (patch.state == BlockState::kUnknown) return;

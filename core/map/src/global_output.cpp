@@ -163,7 +163,6 @@ struct VoteSink {
 /// outweigh half of the whole `body` (the receiver then does better to decode the map).
 std::optional<std::vector<BlockPatch>> patches_of(const detail::SumTree& sums, const detail::EncodedBlocks& blocks,
                                                   const std::vector<std::uint64_t>& ids, std::size_t body_bytes) {
-  static_assert(kPatchBlockDepth == detail::SumTree::kBlockDepth, "patches name the encoder's blocks");
   std::vector<BlockPatch> patches(ids.size());
   std::size_t bytes = 0;
   for (std::size_t k = 0; k < ids.size(); ++k) {
@@ -177,10 +176,7 @@ std::optional<std::vector<BlockPatch>> patches_of(const detail::SumTree& sums, c
       continue;
     }
     // Not written as a block: a leaf at or above block depth, or nothing (unknown).
-    constexpr unsigned s = 16 - kPatchBlockDepth;
-    const octomap::OcTreeKey key(static_cast<octomap::key_type>((ids[k] & 0xFFFFU) << s),
-                                 static_cast<octomap::key_type>(((ids[k] >> 16) & 0xFFFFU) << s),
-                                 static_cast<octomap::key_type>(((ids[k] >> 32) & 0xFFFFU) << s));
+    const octomap::OcTreeKey key = patch_block_key(ids[k]);
     const detail::SumNode* node = sums.root_node();
     for (unsigned depth = 0; node != nullptr && sums.nodeHasChildren(node); ++depth) {
       if (depth == kPatchBlockDepth) return std::nullopt;  // an inner block the writer did not keep: cannot happen

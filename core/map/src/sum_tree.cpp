@@ -86,9 +86,7 @@ bool SumTree::changed(std::uint64_t block) const {
   if (all_changed_ || changed_blocks_.count(block) != 0) return true;
   if (region_levels_ == 0) return false;
   constexpr unsigned kBlockLevel = kTreeDepth - kBlockDepth;
-  const octomap::OcTreeKey key(static_cast<octomap::key_type>((block & 0xFFFFU) << kBlockLevel),
-                               static_cast<octomap::key_type>(((block >> 16) & 0xFFFFU) << kBlockLevel),
-                               static_cast<octomap::key_type>(((block >> 32) & 0xFFFFU) << kBlockLevel));
+  const octomap::OcTreeKey key = patch_block_key(block);
   for (unsigned level = kBlockLevel + 1; level <= kTreeDepth; ++level) {
     if ((region_levels_ & (1U << level)) != 0 && changed_regions_.count(region_id(key, level)) != 0) return true;
   }

@@ -17,6 +17,8 @@
 #include <octomap/OcTreeBase.h>
 #include <octomap/OcTreeDataNode.h>
 
+#include "mapmerge/map/global_delta.hpp"
+
 namespace mapmerge::detail {
 
 /// A voxel's packed sum (0 when created: no evidence).
@@ -52,12 +54,9 @@ class SumTree : public octomap::OcTreeBase<SumNode> {
 
   /// The encoder keeps the bytes of the subtrees at this depth (2^(16 - kBlockDepth) voxels a
   /// side: 1.6 m at 5 cm) and writes again only those whose sums changed.
-  static constexpr unsigned kBlockDepth = 11;
+  static constexpr unsigned kBlockDepth = kPatchBlockDepth;  ///< patches name these blocks
   /// The block (subtree at kBlockDepth) holding `key`.
-  static std::uint64_t block_of(const octomap::OcTreeKey& key) {
-    constexpr unsigned s = 16 - kBlockDepth;
-    return std::uint64_t{key[0]} >> s | (std::uint64_t{key[1]} >> s) << 16 | (std::uint64_t{key[2]} >> s) << 32;
-  }
+  static std::uint64_t block_of(const octomap::OcTreeKey& key) { return patch_block_of(key); }
   /// Whether any voxel of `block` changed since the last forget_changes().
   bool changed(std::uint64_t block) const;
   /// Every block changed() is true for, if they are known and at most `max` (else nullopt: too

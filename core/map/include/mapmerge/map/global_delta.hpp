@@ -41,6 +41,14 @@ inline std::uint64_t patch_block_of(const octomap::OcTreeKey& key) {
   return std::uint64_t{key[0]} >> s | (std::uint64_t{key[1]} >> s) << 16 | (std::uint64_t{key[2]} >> s) << 32;
 }
 
+/// The first voxel key of `block` (the inverse of patch_block_of() on a block's corner).
+inline octomap::OcTreeKey patch_block_key(std::uint64_t block) {
+  constexpr unsigned s = 16 - kPatchBlockDepth;
+  return octomap::OcTreeKey(static_cast<octomap::key_type>((block & 0xFFFFU) << s),
+                            static_cast<octomap::key_type>(((block >> 16) & 0xFFFFU) << s),
+                            static_cast<octomap::key_type>(((block >> 32) & 0xFFFFU) << s));
+}
+
 /// 64-bit FNV-1a of `size` bytes: names a global map's payload, so a receiver patches only the
 /// exact map a patch was made from (GlobalMapDelta's base_hash and hash).
 std::uint64_t payload_hash(const std::uint8_t* data, std::size_t size);
