@@ -44,12 +44,14 @@ void read_network(const YAML::Node& n, NetworkConfig& c) {
 }
 
 void read_merge(const YAML::Node& n, MergeConfig& c) {
-  check_keys(n, "merge", {"threads", "reference", "global_frame", "global_resolution", "refine_known",
+  check_keys(n, "merge", {"threads", "ingest_threads", "merge_nice", "reference", "global_frame", "global_resolution", "refine_known",
                           "refine_min_change", "search_blocks_fallback",
                           "refine_republish_translation", "refine_republish_rotation_deg", "extra_pairs",
                           "extra_min_overlap", "extra_overlap_samples", "extra_global_fallback", "extra_max_jobs",
                           "keep_lost_maps", "session_conflict_hold_s"});
   read(n, "threads", c.threads, "merge");
+  read(n, "ingest_threads", c.ingest_threads, "merge");
+  read(n, "merge_nice", c.merge_nice, "merge");
   read(n, "reference", c.reference, "merge");
   read(n, "global_frame", c.global_frame, "merge");
   read(n, "global_resolution", c.global_resolution, "merge");
@@ -96,6 +98,10 @@ void read_limits(const YAML::Node& n, DecodeLimits& c) {
 void check(const ServerConfig& c) {
   if (c.network.domain < 0 || c.network.domain > 101) throw ConfigError("network.domain must be in 0..101");
   if (c.merge.threads < 1 || c.merge.threads > 256) throw ConfigError("merge.threads must be in 1..256");
+  if (c.merge.ingest_threads < 1 || c.merge.ingest_threads > 256) {
+    throw ConfigError("merge.ingest_threads must be in 1..256");
+  }
+  if (c.merge.merge_nice < 0 || c.merge.merge_nice > 19) throw ConfigError("merge.merge_nice must be in 0..19");
   if (c.merge.global_resolution < 0.0) throw ConfigError("merge.global_resolution must be >= 0");
   if (!(c.merge.refine_min_change >= 0.0 && c.merge.refine_min_change <= 1.0)) {
     throw ConfigError("merge.refine_min_change must be in 0..1");

@@ -135,7 +135,7 @@ int main(int argc, char** argv) {
                  "DDS Security keystore (scripts/make-keystore); default: ROS_SECURITY_KEYSTORE when "
                  "ROS_SECURITY_ENABLE=true, else security off");
   app.add_option("--enclave", f.enclave, "the server's enclave in the keystore (default: mapmerge_server)");
-  app.add_option("--threads", f.threads, "merge worker threads")->check(CLI::Range(1, 256));
+  app.add_option("--threads", f.threads, "merge threads (global searches, refinements, extra pairs)")->check(CLI::Range(1, 256));
   app.add_option("--log-level", f.log_level, "trace, debug, info, warn, error");
   app.add_option("--export-global", f.export_prefix,
                  "write the last global map of --state-dir as PREFIX.bt and its per-robot provenance as "

@@ -50,11 +50,11 @@ Pipeline::Pipeline(const ServerConfig& config, Registry& registry, Store* store,
     : config_(config), registry_(registry), store_(store), hooks_(std::move(hooks)) {}
 
 void Pipeline::process(const std::string& robot, std::optional<MapSample> map, bool retry) {
-  const std::string suffix = refine_job("");
-  if (robot.size() > suffix.size() && robot.compare(robot.size() - suffix.size(), suffix.size(), suffix) == 0) {
-    refine_turn(robot.substr(0, robot.size() - suffix.size()));
-    return;
-  }
+  const auto job_of = [&](const std::string& suffix) {
+    return robot.size() > suffix.size() && robot.compare(robot.size() - suffix.size(), suffix.size(), suffix) == 0;
+  };
+  if (job_of(refine_job(""))) return refine_turn(robot.substr(0, robot.size() - refine_job("").size()));
+  if (job_of(search_job(""))) return search_turn(robot.substr(0, robot.size() - search_job("").size()));
   if (map && unchanged(*map)) {
     // The same map again (a periodic republish): only partners whose maps changed since are
     // worth a new global search; an aligned robot needs nothing.
@@ -105,18 +105,22 @@ bool Pipeline::ingest(const MapSample& m, bool persist) {
   // Stored before the registry (and so the status topic and the global map) shows it: what the
   // server has published is never lost by a crash. A failed write keeps the map in memory.
   const auto t1 = std::chrono::steady_clock::now();
-  if (persist) {
-    // A new session may come with a new map frame: its stored alignments go first (the
-    // registry drops them in put_map).
-    if (const auto held = registry_.get(robot); held && !held->session_id.empty() && held->session_id != m.session_id) {
-      store_edges_without(robot);
-    }
-  }
+  const auto held = registry_.get(robot);
+  const bool new_session = held && !held->session_id.empty() && held->session_id != m.session_id;
+  // A new session may come with a new map frame: its stored alignments go first (the registry
+  // drops them in put_map).
+  if (persist && new_session) store_edges_without(robot);
   if (persist && store_ != nullptr && !store_->save_map(m)) {
     spdlog::error("robot {}: map {}/{} served from memory only until the store works again", robot, m.session_id,
                   m.sequence);
   }
-  registry_.put_map(std::move(r));
+  if (new_session) {
+    // Not while an alignment of the old session installs its edge (accept_edge checks sessions).
+    std::lock_guard<std::mutex> lock(alignment_mutex_);
+    registry_.put_map(std::move(r));
+  } else {
+    registry_.put_map(std::move(r));
+  }
   ++accepted_;
   spdlog::info("robot {}: map {}/{} accepted ({} nodes, {:.3f} m; check {:.0f} ms, store {:.0f} ms)", robot,
                m.session_id, m.sequence, nodes, decoded.map->resolution(), decode_s * 1e3, seconds_since(t1) * 1e3);
@@ -159,6 +163,16 @@ void Pipeline::place(const std::string& robot) {
     }
     return;
   }
+  if (hooks_.search) {
+    hooks_.search(search_job(robot));
+  } else {
+    search_unknown(*rec);
+  }
+}
+
+void Pipeline::search_turn(const std::string& robot) {
+  const auto rec = registry_.get(robot);  // the latest map: a search of an older one is moot
+  if (!rec || !rec->map || registry_.poses().count(robot) != 0 || robot == registry_.reference()) return;
   search_unknown(*rec);
 }
 
@@ -224,8 +238,7 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
     registry_.mark_tried(rec.robot_id, rec.map_revision, tried_key(*other));
     record_attempt(rec, *other, "search", res.accepted, res.reason);
     if (res.accepted) {
-      accept_edge(make_edge(*other, rec, res));
-      on_new_alignment(rec.robot_id, true);
+      if (accept_edge(make_edge(*other, rec, res), *other, rec)) on_new_alignment(rec.robot_id, true);
       return;
     }
   }
@@ -271,7 +284,8 @@ bool Pipeline::refine_known(const RobotRecord& rec) {
     const align::AlignResult res = align_local(*target, *me, e.T_target_source, config_.align);
     report({e.target, e.source, res.accepted, false, res.fitness, seconds_since(t0), res.reason, unix_now()});
     if (!res.accepted) continue;
-    if (const auto target_rec = registry_.get(e.target)) accept_edge(make_edge(*target_rec, rec, res));
+    const auto target_rec = registry_.get(e.target);
+    if (!target_rec || !accept_edge(make_edge(*target_rec, rec, res), *target_rec, rec)) continue;
     refined = true;
     moved |= moved_noticeably(e.T_target_source, res.T_target_source);
   }
@@ -290,9 +304,18 @@ void Pipeline::persist_edges() {
   store_->save_alignment(registry_.reference(), registry_.edges(), registry_.edge_verdicts());  // logs failures
 }
 
-void Pipeline::accept_edge(const Edge& edge) {
+bool Pipeline::accept_edge(const Edge& edge, const RobotRecord& target, const RobotRecord& source) {
   // Stored before the registry (and so the published poses) shows it; one edge set at a time.
   std::lock_guard<std::mutex> lock(alignment_mutex_);
+  for (const RobotRecord* r : {&target, &source}) {
+    // Aligned on a map of a session that ended meanwhile (its frame may be another).
+    const auto now = registry_.get(r->robot_id);
+    if (!now || now->session_id != r->session_id) {
+      spdlog::info("merge {} <- {}: dropped: robot {} started a new session during the alignment", edge.target,
+                   edge.source, r->robot_id);
+      return false;
+    }
+  }
   if (store_ != nullptr) {
     std::vector<Edge> edges;
     for (const Edge& e : registry_.edges()) {
@@ -307,10 +330,11 @@ void Pipeline::accept_edge(const Edge& edge) {
     }
   }
   registry_.put_edge(edge);
-  const auto target = registry_.get(edge.target), source = registry_.get(edge.source);
-  if (target && target->map && source && source->map) {
-    edge_basis_[{edge.target, edge.source}] = {target->map->num_nodes(), source->map->num_nodes()};
+  const auto target_now = registry_.get(edge.target), source_now = registry_.get(edge.source);
+  if (target_now && target_now->map && source_now && source_now->map) {
+    edge_basis_[{edge.target, edge.source}] = {target_now->map->num_nodes(), source_now->map->num_nodes()};
   }
+  return true;
 }
 
 void Pipeline::store_edges_without(const std::string& robot) {
@@ -483,7 +507,7 @@ void Pipeline::align_extra_pair(const ExtraPair& p) {
   record_attempt(*t, *s, "extra", res.accepted, res.reason);
   done();
   if (!res.accepted) return;
-  accept_edge(make_edge(*t, *s, res));
+  if (!accept_edge(make_edge(*t, *s, res), *t, *s)) return;
   ++extra_added_;
   on_new_alignment(p.source, false);
 }

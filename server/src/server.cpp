@@ -28,18 +28,20 @@ Server::Server(ServerConfig config) : config_(std::move(config)) {
     cv_.notify_all();
   };
   hooks.cancelled = [this] { return stopping_.load(); };
-  hooks.refine = [this](const std::string& job) { scheduler_->retry(job); };
+  hooks.refine = [this](const std::string& job) { scheduler_->background(job); };
+  hooks.search = [this](const std::string& job) { scheduler_->background(job); };
   hooks.more_idle_work = [this] {
     if (scheduler_) scheduler_->kick_idle();
   };
   pipeline_ = std::make_unique<Pipeline>(config_, registry_, store_.get(), hooks);
   restore();
   scheduler_ = std::make_unique<Scheduler>(
-      config_.merge.threads,
+      config_.merge.ingest_threads,
       [this](const std::string& robot, std::optional<MapSample> map, bool retry) {
         pipeline_->process(robot, std::move(map), retry);
       },
-      [this] { return pipeline_->next_extra_pair(); }, config_.merge.extra_max_jobs);
+      [this] { return pipeline_->next_extra_pair(); }, config_.merge.extra_max_jobs,
+      Scheduler::Lanes{config_.merge.threads, config_.merge.merge_nice});
   DdsIo::Callbacks callbacks;
   callbacks.on_map = [this](MapSample s) { on_map(std::move(s)); };
   callbacks.on_request = [this](const std::string& who) {

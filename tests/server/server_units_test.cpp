@@ -1,6 +1,9 @@
 // The server's units without DDS: admission of updates, global poses from pairwise edges,
 // the coalescing scheduler, the SQLite store (reopened as after a crash), the config loader.
 
+#include <sys/resource.h>
+#include <unistd.h>
+
 #include <atomic>
 #include <condition_variable>
 #include <filesystem>
@@ -406,6 +409,57 @@ TEST(Scheduler, IdleWorkRunsOnSpareThreadsAndNeverStarvesARobot) {
   EXPECT_EQ(s.stats().jobs_run, 1u);
 }
 
+int this_threads_nice() { return getpriority(PRIO_PROCESS, static_cast<id_t>(gettid())); }
+
+TEST(Scheduler, MapsRunBesideBackgroundJobsWhichRunOnTheirOwnLowerPriorityThreads) {
+  std::mutex m;
+  std::condition_variable cv;
+  bool release = false;
+  int refine_runs = 0, map_nice = -100, background_nice = -100;
+  std::vector<std::string> order;
+  Scheduler s(
+      1,
+      [&](const std::string& key, std::optional<MapSample> map, bool retry) {
+        std::unique_lock<std::mutex> lock(m);
+        if (map) {
+          map_nice = this_threads_nice();
+          order.push_back(key + "+map");
+          cv.notify_all();
+          return;
+        }
+        EXPECT_TRUE(retry);
+        background_nice = this_threads_nice();
+        if (key == "r1#refine") ++refine_runs;
+        order.push_back(key);
+        cv.notify_all();
+        cv.wait(lock, [&] { return release; });  // holds the only background thread
+      },
+      nullptr, 0, Scheduler::Lanes{1, 5});
+  s.background("r1#refine");
+  {
+    std::unique_lock<std::mutex> lock(m);
+    ASSERT_TRUE(cv.wait_for(lock, 10s, [&] { return !order.empty(); }));
+  }
+  for (int i = 0; i < 3; ++i) s.background("r1#refine");  // coalesced into one more run
+  s.background("r2#search");
+  MapSample sample;
+  sample.robot_id = "r1";
+  s.submit(sample);  // runs at once on the robots' thread, beside the background job
+  {
+    std::unique_lock<std::mutex> lock(m);
+    ASSERT_TRUE(cv.wait_for(lock, 10s, [&] { return order.size() == 2; }));
+    EXPECT_EQ(order.back(), "r1+map");
+  }
+  open_gate(m, cv, release);
+  ASSERT_TRUE(wait_until_idle(s));
+  EXPECT_EQ(refine_runs, 2);
+  ASSERT_EQ(order.size(), 4u);
+  EXPECT_EQ(order[2], "r2#search");  // background jobs in the order asked
+  EXPECT_EQ(order[3], "r1#refine");
+  EXPECT_EQ(background_nice, std::min(19, map_nice + 5));  // the map's thread keeps the process's priority
+  EXPECT_EQ(map_nice, getpriority(PRIO_PROCESS, 0));
+}
+
 /// A store in a fresh directory of its own.
 StoreConfig fresh_store(const std::string& name) {
   StoreConfig cfg;
@@ -598,6 +652,12 @@ TEST(Config, ReadsSectionsAndRejectsUnknownKeys) {
   EXPECT_THROW(parse_server_config("network: {domain: 200}\n"), align::ConfigError);
   EXPECT_THROW(parse_server_config("merge: {threads: many}\n"), align::ConfigError);
   EXPECT_EQ(parse_server_config("").merge.threads, 2);
+  const ServerConfig lanes = parse_server_config("merge: {ingest_threads: 2, merge_nice: 0}\n");
+  EXPECT_EQ(lanes.merge.ingest_threads, 2);
+  EXPECT_EQ(lanes.merge.merge_nice, 0);
+  EXPECT_EQ(parse_server_config("").merge.merge_nice, 10);
+  EXPECT_THROW(parse_server_config("merge: {ingest_threads: 0}\n"), align::ConfigError);
+  EXPECT_THROW(parse_server_config("merge: {merge_nice: 20}\n"), align::ConfigError);
 }
 
 TEST(Config, ExtraPairSettings) {

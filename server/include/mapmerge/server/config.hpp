@@ -21,7 +21,11 @@ struct NetworkConfig {
 
 /// The merge policy (read by Pipeline and Scheduler).
 struct MergeConfig {
-  int threads = 2;                   ///< worker threads running merges [count]
+  int threads = 2;                   ///< threads running merges: global searches, refinements, extra pairs [count]
+  int ingest_threads = 1;            ///< threads checking and storing received maps [count]: a map never
+                                     ///< waits behind a merge
+  int merge_nice = 10;               ///< the merge threads run this many nice levels below the server's
+                                     ///< priority, so a received map's check and fusion go first (0: same)
   std::string reference;             ///< robot defining the global frame; empty: the first heard
   std::string global_frame = "global";  ///< frame id of the global map and poses
   double global_resolution = 0.0;    ///< voxel edge of the global map [m]; 0: the reference's
@@ -41,7 +45,8 @@ struct MergeConfig {
   int extra_overlap_samples = 1000;  ///< occupied voxels sampled by the overlap estimate [count]
   bool extra_global_fallback = true;  ///< an extra pair whose local refinement (from the pose estimates)
                                       ///< fails gets a global search
-  int extra_max_jobs = 0;            ///< extra pairs aligned at once [count]; 0: threads - 1 (at least 1)
+  int extra_max_jobs = 0;            ///< extra pairs aligned at once [count]; 0: threads - 1 (at least 1),
+                                     ///< so a merge thread is free for searches and refinements
   bool keep_lost_maps = true;        ///< a robot whose writers are gone (left, or lease expired) stays
                                      ///< fused in the global map (false: left out until it returns)
   double session_conflict_hold_s = 30.0;  ///< a session of a robot that a newer session replaced is refused

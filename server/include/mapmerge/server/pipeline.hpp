@@ -46,16 +46,22 @@ class Pipeline {
     /// previous one is refined); without it the refinement runs inline.
     std::function<void(const std::string& job)> refine;
     std::function<void()> more_idle_work;                 ///< extra pairs may have appeared
+    /// Run search_job(robot) as a turn of its own (so the robot's next map is checked and stored
+    /// while its previous one is searched for); without it the search runs inline.
+    std::function<void(const std::string& job)> search;
   };
 
   /// The scheduler key of `robot`'s refinement turn (ids cannot contain '#').
   static std::string refine_job(const std::string& robot) { return robot + "#refine"; }
+  /// The scheduler key of `robot`'s global-search turn.
+  static std::string search_job(const std::string& robot) { return robot + "#search"; }
 
   /// `store` may be null (no persistence).
   Pipeline(const ServerConfig& config, Registry& registry, Store* store, Hooks hooks);
 
   /// One turn of `robot`: its newest map (if any arrived) and/or a retry; for refine_job(robot),
-  /// the local refinement of the robot's latest map.
+  /// the local refinement of the robot's latest map; for search_job(robot), the global search of
+  /// its latest map (if it is still unknown).
   void process(const std::string& robot, std::optional<MapSample> map, bool retry);
   /// Installs a map from the store at start-up (no persistence, no alignment).
   bool restore(const MapSample& map);
@@ -73,8 +79,9 @@ class Pipeline {
   /// The robot's map of the same session with the same bytes again: records the new sequence
   /// (store first, then registry) and returns true; nothing is decoded.
   bool unchanged(const MapSample& map);
-  /// Stores the edge set with `edge`, then installs `edge` in the registry.
-  void accept_edge(const Edge& edge);
+  /// Stores the edge set with `edge`, then installs `edge` in the registry; false (nothing
+  /// installed) when `target` or `source` (the records aligned) is no longer its robot's session.
+  bool accept_edge(const Edge& edge, const RobotRecord& target, const RobotRecord& source);
   void warn_on_resolution(const std::string& robot, double resolution) const;
   void place(const std::string& robot);
   /// Refines the robot's own edges; true when a transform moved noticeably.
@@ -85,6 +92,7 @@ class Pipeline {
   /// them: a known robot's refinement prepares stages 1-2 only (faster, smaller).
   std::shared_ptr<const align::PreparedMap> prepared(const std::string& robot, bool features);
   void refine_turn(const std::string& robot);
+  void search_turn(const std::string& robot);
   /// Stores the reference and the registry's edges except those of `robot`.
   void store_edges_without(const std::string& robot);
   /// Asks for a republish and, when `joined` (the aligned group grew), a retry of every
