@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <utility>
 
 #include <spdlog/spdlog.h>
 
@@ -63,25 +64,49 @@ std::vector<PlacedMap> GlobalMapBuilder::placed_maps(const Registry& registry,
 
 bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Contribution>& contributors) {
   bool grown = false;  // a map to fuse by its difference (cheap)
-  bool moved = false;  // a map to fuse whole: new robot or new pose (costly)
-  for (const PlacedMap& m : maps) {
-    if (fusion_->holds(m.robot, m.map.get(), m.T_global_robot)) continue;
-    const auto fused = fusion_->pose_of(m.robot);
-    (fused && *fused == m.T_global_robot ? grown : moved) = true;
-  }
-  if (!grown || !moved) return false;
+  std::vector<std::size_t> moves, moved;  // maps to fuse whole (costly): new robots, then new poses
+  bool any_fused = false;
   for (std::size_t i = 0; i < maps.size(); ++i) {
+    const PlacedMap& m = maps[i];
+    const auto fused = fusion_->pose_of(m.robot);
+    any_fused |= fused.has_value();
+    if (fusion_->holds(m.robot, m.map.get(), m.T_global_robot)) continue;
+    if (fused && *fused == m.T_global_robot) {
+      grown = true;
+    } else {
+      (fused ? moved : moves).push_back(i);
+    }
+  }
+  moves.insert(moves.end(), moved.begin(), moved.end());
+  if (moves.empty() || !any_fused) return false;  // a first fusion is built whole
+  // Grown maps go out first, alone (a known robot's update is on the fleet's latency path), but
+  // only every other build: a stream of updates never holds moves back for good.
+  const bool moves_now = !grown || std::exchange(moves_held_, false);
+  const std::size_t budget = config_.publish.move_nodes_per_build;
+  std::vector<bool> keep(maps.size(), true);
+  std::size_t nodes = 0, taken = 0;
+  for (const std::size_t i : moves) {
+    const std::size_t n = maps[i].map->num_nodes();
+    if (moves_now && (taken == 0 || budget == 0 || nodes + n <= budget)) {
+      nodes += n;
+      ++taken;
+    } else {
+      keep[i] = false;
+    }
+  }
+  moves_held_ = taken == 0;
+  if (taken == moves.size()) return false;
+  for (std::size_t i = maps.size(); i-- > 0;) {
+    if (keep[i]) continue;
     const auto fused = fusion_->pose_of(maps[i].robot);
-    if (fused && *fused == maps[i].T_global_robot) continue;
     if (fused) {  // as it is fused now, with the contribution fused then
       maps[i].map = fusion_->map_of(maps[i].robot);
       maps[i].T_global_robot = *fused;
       const auto c = fused_contributions_.find(maps[i].robot);
       if (c != fused_contributions_.end()) contributors[i] = c->second;
-    } else {  // not yet in the global map: the next build fuses it
+    } else {  // not yet in the global map: a next build fuses it
       maps.erase(maps.begin() + static_cast<std::ptrdiff_t>(i));
       contributors.erase(contributors.begin() + static_cast<std::ptrdiff_t>(i));
-      --i;
     }
   }
   return true;

@@ -658,6 +658,8 @@ TEST(Config, ReadsSectionsAndRejectsUnknownKeys) {
   EXPECT_EQ(parse_server_config("").merge.merge_nice, 10);
   EXPECT_THROW(parse_server_config("merge: {ingest_threads: 0}\n"), align::ConfigError);
   EXPECT_THROW(parse_server_config("merge: {merge_nice: 20}\n"), align::ConfigError);
+  EXPECT_EQ(parse_server_config("publish: {move_nodes_per_build: 0}\n").publish.move_nodes_per_build, 0u);
+  EXPECT_THROW(parse_server_config("publish: {move_nodes_per_build: -1}\n"), align::ConfigError);
 }
 
 TEST(Config, ExtraPairSettings) {
@@ -892,6 +894,7 @@ TEST(GlobalMapBuilder, AGrownMapIsPublishedBeforeAMovedOneIsFusedAgain) {
   const Eigen::Matrix4d T2 = mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155);
   const auto r1 = test::cut_robot_map(*world, "r1", box(-8, 12), Eigen::Matrix4d::Identity());
   const auto r1_grown = test::cut_robot_map(*world, "r1", box(-8, 16), Eigen::Matrix4d::Identity());
+  const auto r1_grown_again = test::cut_robot_map(*world, "r1", box(-8, 18), Eigen::Matrix4d::Identity());
   const auto r2 = test::cut_robot_map(*world, "r2", box(4, 24), T2);
   const auto r2_grown = test::cut_robot_map(*world, "r2", box(4, 30), T2);
   ServerConfig config;
@@ -911,13 +914,57 @@ TEST(GlobalMapBuilder, AGrownMapIsPublishedBeforeAMovedOneIsFusedAgain) {
   EXPECT_TRUE(builder.deferred());
   EXPECT_EQ(builder.last_stages().incremental, 1u);
   for (const Contribution& c : first->contributors) EXPECT_EQ(c.sequence, c.robot_id == "r1" ? 2u : 1u) << c.robot_id;
+  // r1 grows again before the next build: the move is not held back a second time.
+  registry.put_map(record_of(r1_grown_again, 3));
   const auto second = builder.build(registry, 3);
   ASSERT_TRUE(second);
   EXPECT_FALSE(builder.deferred());
-  for (const Contribution& c : second->contributors) EXPECT_EQ(c.sequence, 2u) << c.robot_id;
+  EXPECT_EQ(builder.last_stages().updated, 2u);
+  for (const Contribution& c : second->contributors) EXPECT_EQ(c.sequence, c.robot_id == "r1" ? 3u : 2u) << c.robot_id;
   const auto expected = GlobalMapBuilder(config).build(registry, 3);
   ASSERT_TRUE(expected);
   EXPECT_TRUE(second->data == expected->data) << "after the deferred move, the map differs from a fresh build";
+}
+
+TEST(GlobalMapBuilder, MovedRobotsAreFusedAgainWithinTheBuildsNodeBudgetUntilAllAre) {
+  const auto world = test::load_data_map("geb079.bt");
+  const Eigen::Matrix4d T2 = mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155);
+  const Eigen::Matrix4d T3 = mapmerge::paper_transform(5, -3, 0.2, 2, -1, -70);
+  const Eigen::Matrix4d shift = mapmerge::paper_transform(0.3, 0, 0, 0, 0, 0);
+  Registry registry;
+  registry.claim_reference("r1");
+  registry.put_map(record_of(test::cut_robot_map(*world, "r1", box(-8, 12), Eigen::Matrix4d::Identity()), 1));
+  registry.put_map(record_of(test::cut_robot_map(*world, "r2", box(4, 24), T2), 1));
+  registry.put_map(record_of(test::cut_robot_map(*world, "r3", box(14, 31), T3), 1));
+  const auto place = [&](const Eigen::Matrix4d& moved) {
+    registry.put_edge(Edge{"r1", "r2", moved * T2.inverse(), 0.02});
+    registry.put_edge(Edge{"r1", "r3", moved * T3.inverse(), 0.02});
+  };
+  place(Eigen::Matrix4d::Identity());
+  for (const std::size_t budget : {std::size_t{1}, std::size_t{0}}) {
+    SCOPED_TRACE("budget " + std::to_string(budget));
+    ServerConfig config;
+    config.publish.move_nodes_per_build = budget;
+    place(Eigen::Matrix4d::Identity());
+    GlobalMapBuilder builder(config);
+    ASSERT_TRUE(builder.build(registry, 1));  // a first fusion: every robot at once
+    EXPECT_EQ(builder.last_stages().updated, 3u);
+    EXPECT_FALSE(builder.deferred());
+    place(shift);  // the pose graph moves r2 and r3 by 0.3 m
+    std::optional<GlobalMapOut> last;
+    std::vector<std::size_t> updated;
+    for (std::uint64_t version = 2; version < 6 && (version == 2 || builder.deferred()); ++version) {
+      last = builder.build(registry, version);
+      ASSERT_TRUE(last);
+      updated.push_back(builder.last_stages().updated);
+    }
+    // One robot per build over budget (at least one), both at once without one.
+    const std::vector<std::size_t> expected_updates = budget == 0 ? std::vector<std::size_t>{2} : std::vector<std::size_t>{1, 1};
+    EXPECT_EQ(updated, expected_updates);
+    const auto expected = GlobalMapBuilder(config).build(registry, 9);
+    ASSERT_TRUE(expected);
+    EXPECT_TRUE(last->data == expected->data) << "after the moves, the map differs from a fresh build";
+  }
 }
 
 TEST(ExportGlobal, WritesTheLastGlobalMapAndWhichRobotContributedEachVoxel) {

@@ -60,6 +60,11 @@ struct PublishConfig {
   double republish_period_s = 2.0;   ///< republish map and poses this often for late joiners [s]
   double status_period_s = 1.0;      ///< server status this often [s]
   std::string global_encoding = "octomap-bt";  ///< encoding of the native global map
+  std::size_t move_nodes_per_build = 250000;   ///< robots to fuse whole (a new robot, a moved pose) per
+                                               ///< global-map build, by their maps' nodes (~0.3 s of
+                                               ///< fusion on 2 cores), at least one; the others keep
+                                               ///< their fused pose until the next builds, so updates
+                                               ///< are published in between [count; 0: all at once]
 };
 
 /// Where and how the registry persists (read by Store).

@@ -30,7 +30,7 @@ class GlobalMapBuilder {
   std::optional<GlobalMapOut> build(const Registry& registry, std::uint64_t version);
 
   /// True when the last build left robots to fuse whole (new robots, moved poses) for the next
-  /// build, because it had grown maps to publish first: build again soon.
+  /// builds (grown maps went first, or the move budget was spent): build again soon.
   bool deferred() const { return deferred_; }
 
   /// Which robot contributed each occupied voxel of the last built map, with every robot's frame.
@@ -56,12 +56,15 @@ class GlobalMapBuilder {
   const ServerConfig& config_;
   std::unique_ptr<GlobalFusion> fusion_;
   const Eigen::AlignedBox3d& extent(const std::string& robot, const std::shared_ptr<const HeldMap>& map);
-  /// When some maps only grew and others must be fused whole (new robot, new pose), keeps the
-  /// latter as fused for this build, so grown maps reach the fleet first; true if it did.
+  /// Maps to fuse whole (new robot, new pose) beyond publish.move_nodes_per_build (at least one),
+  /// or all of them when some maps only grew and the last build did not hold all back too (grown
+  /// maps reach the fleet first), are kept as fused for this build; true if any was. A first
+  /// fusion is whole.
   bool defer_moves(std::vector<PlacedMap>& maps, std::vector<Contribution>& contributors);
   RefusedMaps refused_;
   std::map<std::string, Contribution> fused_contributions_;  ///< per robot: the map version fused
   bool deferred_ = false;
+  bool moves_held_ = false;  ///< the last build fused no move, to publish grown maps first
   std::map<std::string, std::pair<std::weak_ptr<const HeldMap>, Eigen::AlignedBox3d>> extents_;  ///< per robot
   Stages stages_;
   std::vector<std::shared_ptr<const HeldMap>> replaced_;  ///< maps the last build replaced
