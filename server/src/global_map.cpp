@@ -124,6 +124,7 @@ const Eigen::AlignedBox3d& GlobalMapBuilder::extent(const std::string& robot,
 
 std::optional<GlobalMapOut> GlobalMapBuilder::build(const Registry& registry, std::uint64_t version) {
   const auto t0 = std::chrono::steady_clock::now();
+  unchanged_ = false;
   GlobalMapOut g;
   std::vector<PlacedMap> maps = placed_maps(registry, g.contributors);
   if (maps.empty()) return std::nullopt;
@@ -160,6 +161,18 @@ std::optional<GlobalMapOut> GlobalMapBuilder::build(const Registry& registry, st
   g.data = encoding == Encoding::kOctomapBt ? std::move(e.bt) : encode_map(*fusion_->tree(), encoding);
   g.ros_body = std::move(e.body);
   g.hash = payload_hash(g.data);
+  const auto same = [](const Contribution& a, const Contribution& b) {
+    return a.robot_id == b.robot_id && a.session_id == b.session_id && a.sequence == b.sequence;
+  };
+  if (last_built_ && g.hash == last_built_->second && g.contributors.size() == last_contributors_.size() &&
+      std::equal(g.contributors.begin(), g.contributors.end(), last_contributors_.begin(), same)) {
+    unchanged_ = true;  // e.g. a refinement moved a robot by less than half a voxel: no new version
+    stages_ = Stages{std::chrono::duration<double>(t1 - t0).count(),
+                     std::chrono::duration<double>(std::chrono::steady_clock::now() - t1).count(), sync.updated,
+                     sync.incremental, sync.from_bodies};
+    return std::nullopt;
+  }
+  last_contributors_ = g.contributors;
   if (e.patches && last_built_ && encoding == Encoding::kOctomapBt) {  // blocks of the canonical body only
     g.delta = GlobalMapOut::Delta{last_built_->first, last_built_->second, std::move(*e.patches)};
   }

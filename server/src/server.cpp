@@ -207,6 +207,10 @@ void Server::publish_global() {
   auto global = builder_.build(registry_, version_ + 1);
   if (!global) {
     builder_.release_replaced();
+    if (builder_.unchanged()) {  // poses moved, the map did not: no new version
+      spdlog::debug("global map {} unchanged: poses published", version_);
+      dds_->publish_poses(current_poses(), version_, config_.merge.global_frame);
+    }
     return;
   }
   const auto t_built = Clock::now();

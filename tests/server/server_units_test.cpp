@@ -889,6 +889,29 @@ TEST(GlobalMapBuilder, AGrownMapIsFusedByItsDifferenceAndEqualsAFreshBuild) {
   EXPECT_GT(p.owner.size(), 10000u);
 }
 
+TEST(GlobalMapBuilder, APoseWobbleMakesNoNewVersionAndTheNextChangedBlocksStartFromTheLastOne) {
+  const GrownPair pair;
+  ServerConfig config;
+  Registry registry;
+  pair.put_first_maps(registry, received_record_of);
+  GlobalMapBuilder builder(config);
+  const auto first = builder.build(registry, 1);
+  ASSERT_TRUE(first);
+  EXPECT_FALSE(builder.unchanged());
+  // A refinement moves r2 by 5 mm: no point of its map moves by half a voxel.
+  registry.put_edge(Edge{"r1", "r2", mapmerge::paper_transform(0.005, 0, 0, 0, 0, 0) * pair.T2.inverse(), 0.02});
+  EXPECT_FALSE(builder.build(registry, 2));
+  EXPECT_TRUE(builder.unchanged());
+  registry.put_map(received_record_of(pair.r2_grown, 2));
+  const auto second = builder.build(registry, 2);
+  ASSERT_TRUE(second);
+  EXPECT_FALSE(builder.unchanged());
+  ASSERT_TRUE(second->delta);
+  EXPECT_EQ(second->delta->base_version, 1u);
+  EXPECT_EQ(second->delta->base_hash, first->hash);
+  EXPECT_NE(second->hash, first->hash);
+}
+
 TEST(GlobalMapBuilder, AGrownMapIsPublishedBeforeAMovedOneIsFusedAgain) {
   const auto world = test::load_data_map("geb079.bt");
   const Eigen::Matrix4d T2 = mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155);

@@ -27,7 +27,11 @@ class GlobalMapBuilder {
   /// The global map of every aligned robot (nothing when no robot is aligned). A robot whose pose
   /// moved so little since it was fused that no point of its map moves by half a global voxel
   /// keeps its fused pose (a refinement's or the pose graph's wobble does not re-fuse its map).
+  /// Nothing either when the map and its contributors are those of the last build (unchanged()).
   std::optional<GlobalMapOut> build(const Registry& registry, std::uint64_t version);
+  /// True when the last build found the global map as last built: no new version (the poses may
+  /// still have moved, by less than half a voxel of any map point).
+  bool unchanged() const { return unchanged_; }
 
   /// True when the last build left robots to fuse whole (new robots, moved poses) for the next
   /// builds (grown maps went first, or the move budget was spent): build again soon.
@@ -64,7 +68,9 @@ class GlobalMapBuilder {
   RefusedMaps refused_;
   std::map<std::string, Contribution> fused_contributions_;  ///< per robot: the map version fused
   bool deferred_ = false;
-  bool moves_held_ = false;  ///< the last build fused no move, to publish grown maps first
+  bool moves_held_ = false;
+  bool unchanged_ = false;
+  std::vector<Contribution> last_contributors_;  ///< of the last version built  ///< the last build fused no move, to publish grown maps first
   std::map<std::string, std::pair<std::weak_ptr<const HeldMap>, Eigen::AlignedBox3d>> extents_;  ///< per robot
   Stages stages_;
   std::vector<std::shared_ptr<const HeldMap>> replaced_;  ///< maps the last build replaced
