@@ -1,13 +1,16 @@
 // GlobalFusion's outputs: the `.bt` payload (one pass that also prunes the sums), an OcTree of
 // clamped log-odds, and provenance.
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <sstream>
+#include <thread>
 
 #include "leaf_mapper.hpp"
 #include "mapmerge/map/global_delta.hpp"
 #include "mapmerge/map/global_fusion.hpp"
 #include "mapmerge/map/map_io.hpp"
+#include "parallel.hpp"
 #include "sum_tree.hpp"
 #include "tree_writer.hpp"
 
@@ -34,11 +37,15 @@ class BodyWriter {
   BodyWriter(detail::SumTree& sums, detail::EncodedBlocks& last, std::vector<std::uint8_t>& out)
       : sums_(sums), last_(last), out_(out) {}
 
-  std::size_t run() {
+  /// Writes the body; `changed` lists the blocks whose sums changed (if known), which are written
+  /// on several threads first when there are enough of them.
+  std::size_t run(const std::optional<std::vector<std::uint64_t>>& changed) {
     sums_.forget_path();
     detail::SumNode* root = sums_.root_node();
+    if (root != nullptr && changed) write_blocks_at_once(root, *changed);
     State s = State::kUnknown;
     if (root != nullptr) s = write(root, octomap::OcTreeKey(32768, 32768, 32768), 0);
+    sums_.account(deleted_);
     last_.blocks.swap(next_);  // blocks no longer in the map are forgotten
     sums_.forget_changes();
     if (root == nullptr) return 0;
@@ -58,7 +65,68 @@ class BodyWriter {
   }
 
  private:
+  /// Changed blocks are independent subtrees, each one contiguous run of the body: with at least
+  /// kParallelBlocks of them they are written on up to 4 threads (each with its own buffer and
+  /// deletion count), and write() takes their bytes as it would those of unchanged blocks.
+  static constexpr std::size_t kParallelBlocks = 8;
+  void write_blocks_at_once(detail::SumNode* root, const std::vector<std::uint64_t>& ids) {
+    const unsigned threads = std::min(4U, std::thread::hardware_concurrency());
+    if (threads < 2 || ids.size() < kParallelBlocks) return;
+    struct Job {
+      std::uint64_t id;
+      detail::SumNode* node;
+      octomap::OcTreeKey key;
+      detail::EncodedBlock block;
+      State state = State::kUnknown;
+    };
+    std::vector<Job> jobs;
+    for (const std::uint64_t id : ids) {
+      const octomap::OcTreeKey target = patch_block_key(id);
+      detail::SumNode* node = root;
+      octomap::OcTreeKey key(32768, 32768, 32768);
+      unsigned depth = 0;
+      for (; depth < detail::SumTree::kBlockDepth && sums_.nodeHasChildren(node); ++depth) {
+        const unsigned i = octomap::computeChildIdx(target, static_cast<int>(15 - depth));
+        if (!sums_.nodeChildExists(node, i)) break;
+        octomap::computeChildKey(i, static_cast<octomap::key_type>(32768 >> (depth + 1)), key, key);
+        node = sums_.getNodeChild(node, i);
+      }
+      // Only inner nodes at block depth: write() handles leaves and missing blocks itself.
+      if (depth == detail::SumTree::kBlockDepth && sums_.nodeHasChildren(node)) jobs.push_back({id, node, key, {}});
+    }
+    if (jobs.size() < kParallelBlocks) return;
+    std::atomic<std::size_t> next{0};
+    std::atomic<std::size_t> deleted{0};
+    auto work = [&] {
+      std::vector<std::uint8_t> bytes;
+      detail::EncodedBlocks none;
+      BodyWriter writer(sums_, none, bytes);
+      for (std::size_t k = next++; k < jobs.size(); k = next++) {
+        bytes.clear();
+        writer.nodes_ = 0;
+        jobs[k].state = writer.write_inner(jobs[k].node, jobs[k].key, detail::SumTree::kBlockDepth);
+        jobs[k].block.bytes = bytes;
+        jobs[k].block.nodes = writer.nodes_;
+        jobs[k].block.state = static_cast<std::uint8_t>(jobs[k].state);
+      }
+      deleted += writer.deleted_;
+    };
+    detail::run_parallel(std::min<unsigned>(threads, static_cast<unsigned>(jobs.size() / 4)), work);
+    deleted_ += deleted;
+    for (Job& job : jobs) written_.emplace(job.id, std::move(job.block));
+  }
+
   State write(detail::SumNode* node, const octomap::OcTreeKey& key, unsigned depth) {
+    if (depth == detail::SumTree::kBlockDepth && !written_.empty()) {
+      const std::uint64_t id = detail::SumTree::block_of(key);
+      if (auto it = written_.find(id); it != written_.end()) {  // by write_blocks_at_once(), maybe pruned since
+        out_.insert(out_.end(), it->second.bytes.begin(), it->second.bytes.end());
+        nodes_ += it->second.nodes;
+        const auto state = static_cast<State>(it->second.state);
+        next_[id] = std::move(it->second);
+        return state;
+      }
+    }
     if (!sums_.nodeHasChildren(node)) return leaf_state(node->getValue());
     if (depth != detail::SumTree::kBlockDepth) return write_inner(node, key, depth);
     const std::uint64_t id = detail::SumTree::block_of(key);
@@ -91,9 +159,9 @@ class BodyWriter {
       octomap::OcTreeKey child_key;
       octomap::computeChildKey(i, offset, key, child_key);
       states[i] = write(sums_.getNodeChild(node, i), child_key, depth + 1);  // depth <= 16: bounded recursion
-      if (states[i] == State::kUnknown) sums_.drop_child(node, i);
+      if (states[i] == State::kUnknown) sums_.drop_child(node, i, deleted_);
     }
-    sums_.pruneNode(node);  // merges 8 equal leaves; no-op otherwise
+    sums_.prune(node, deleted_);  // merges 8 equal leaves; no-op otherwise
     if (states[0] != State::kMixed && std::all_of(states, states + 8, [&](State s) { return s == states[0]; })) {
       out_.resize(at);  // uniform: the parent records it as a leaf
       return states[0];
@@ -110,8 +178,10 @@ class BodyWriter {
   detail::SumTree& sums_;
   detail::EncodedBlocks& last_;
   std::unordered_map<std::uint64_t, detail::EncodedBlock> next_;
+  std::unordered_map<std::uint64_t, detail::EncodedBlock> written_;  ///< changed blocks written at once
   std::vector<std::uint8_t>& out_;
   std::size_t nodes_ = 0;
+  std::size_t deleted_ = 0;  ///< sum nodes deleted (drop_child, prune), for SumTree::account()
 };
 
 std::string bt_header(std::size_t nodes, double resolution) {
@@ -194,7 +264,7 @@ GlobalFusion::Encoded GlobalFusion::encode() {
   constexpr std::size_t kMaxPatchBlocks = std::size_t{1} << 16;
   Encoded e;
   const auto changed = sums_->changed_blocks(kMaxPatchBlocks);  // before the writer forgets them
-  e.nodes = BodyWriter(*sums_, *encoded_, e.body).run();
+  e.nodes = BodyWriter(*sums_, *encoded_, e.body).run(changed);
   if (changed) e.patches = patches_of(*sums_, *encoded_, *changed, e.body.size());
   const std::string header = bt_header(e.nodes, resolution_);
   e.bt.reserve(header.size() + e.body.size());

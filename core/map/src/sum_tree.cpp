@@ -134,13 +134,28 @@ void SumTree::add(const octomap::OcTreeKey& key, unsigned level, std::int64_t de
 }
 
 void SumTree::drop_child(SumNode* parent, unsigned i) {
+  std::size_t deleted = 0;
+  drop_child(parent, i, deleted);
+  account(deleted);
+}
+
+void SumTree::drop_child(SumNode* parent, unsigned i, std::size_t& deleted) {
   SumNode* child = getNodeChild(parent, i);
   for (unsigned k = 0; k < 8; ++k) {
-    if (nodeChildExists(child, k)) drop_child(child, k);  // depth <= 16: bounded recursion
+    if (nodeChildExists(child, k)) drop_child(child, k, deleted);  // depth <= 16: bounded recursion
   }
   child->free_children_array();
-  deleteNodeChild(parent, i);
-  path_depth_ = 0;
+  parent->delete_child(i);
+  ++deleted;
+}
+
+bool SumTree::prune(SumNode* node, std::size_t& deleted) {
+  if (!isNodeCollapsible(node)) return false;  // as OcTreeBaseImpl::pruneNode
+  node->copyData(*getNodeChild(node, 0));
+  for (unsigned i = 0; i < 8; ++i) node->delete_child(i);
+  node->free_children_array();
+  deleted += 8;
+  return true;
 }
 
 void SumTree::drop_all() {

@@ -31,6 +31,12 @@ class SumNode : public octomap::OcTreeDataNode<std::int64_t> {
     delete[] children;
     children = nullptr;
   }
+  /// Deletes child `i` (a leaf, or emptied), as OcTreeBaseImpl::deleteNodeChild but leaving the
+  /// tree's node count to SumTree::account().
+  void delete_child(unsigned i) {
+    delete static_cast<SumNode*>(children[i]);
+    children[i] = nullptr;
+  }
 };
 
 constexpr double kLogOddsQuantum = 4096.0;  ///< log-odds steps per unit (1/4096 resolution)
@@ -70,6 +76,15 @@ class SumTree : public octomap::OcTreeBase<SumNode> {
   const SumNode* root_node() const { return root; }
   /// Deletes child `i` of `parent` with its whole subtree.
   void drop_child(SumNode* parent, unsigned i);
+  /// As drop_child() and pruneNode(), but counting the nodes deleted into `deleted` instead of
+  /// the tree's size: writers may run on disjoint subtrees at once. account() adds them up.
+  void drop_child(SumNode* parent, unsigned i, std::size_t& deleted);
+  bool prune(SumNode* node, std::size_t& deleted);
+  void account(std::size_t deleted) {
+    tree_size -= deleted;
+    size_changed = true;
+    path_depth_ = 0;
+  }
   /// Deletes everything.
   void drop_all();
   /// Forgets the cached descent (call before changing the structure other than by add()).

@@ -1,11 +1,10 @@
 #include <algorithm>
 #include <atomic>
-#include <future>
 #include <sstream>
-#include <system_error>
 #include <thread>
 #include <utility>
 
+#include "parallel.hpp"
 #include "tree_scan.hpp"
 
 namespace mapmerge::detail {
@@ -94,16 +93,7 @@ void append_binary_body(const octomap::OcTree& tree, std::vector<std::uint8_t>& 
       if (parts[i].subtree != nullptr) append_subtree(tree, parts[i].subtree, parts[i].buffer);
     }
   };
-  std::vector<std::future<void>> helpers;
-  for (unsigned t = 1; t < threads; ++t) {
-    try {
-      helpers.push_back(std::async(std::launch::async, work));
-    } catch (const std::system_error&) {
-      break;  // no thread to be had: this one writes the rest
-    }
-  }
-  work();
-  for (auto& h : helpers) h.get();
+  run_parallel(threads, work);
   for (const Part& p : parts) {
     if (p.subtree != nullptr) {
       out.insert(out.end(), p.buffer.begin(), p.buffer.end());

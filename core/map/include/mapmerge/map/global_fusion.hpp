@@ -102,7 +102,8 @@ class GlobalFusion {
   /// global map, which also prunes the internal sums (merges equal blocks, drops empty space).
   /// The bytes of every block (a subtree of 2^5 voxels a side) are kept, and a block none of
   /// whose voxels changed since the last encode() is copied, not walked: encoding after an
-  /// update costs O(changed blocks + their count), plus copying the bytes.
+  /// update costs O(changed blocks + their count), plus copying the bytes. Eight or more changed
+  /// blocks are written on up to 4 threads (they are disjoint subtrees; same bytes).
   ///
   /// `patches`: the blocks that changed since the previous encode(), which turn the tree decoded
   /// from that encoding into the one decoded from this (apply_block_patches); none after the
