@@ -4,6 +4,7 @@
 #include <array>
 #include <cmath>
 #include <cstring>
+#include <functional>
 #include <unordered_map>
 
 #include "leaf_mapper.hpp"
@@ -113,16 +114,24 @@ class TreeDiff {
 /// their ends.
 class BodyDiff {
  public:
-  BodyDiff(const HeldMap& before, const HeldMap& after, double target_res, const FuseConfig& config)
-      : a_(*before.binary_body()),
-        b_(*after.binary_body()),
-        resolution_(after.resolution()),
+  /// A null side is an empty map: the difference is then the other map's whole evidence (taken
+  /// out when `after` is null). `emit`, if given, gets each cube instead of `cubes`.
+  BodyDiff(const HeldMap* before, const HeldMap* after, double target_res, const FuseConfig& config,
+           std::function<void(const ChangedCube&)> emit = nullptr)
+      : a_(before != nullptr ? *before->binary_body() : no_body()),
+        b_(after != nullptr ? *after->binary_body() : no_body()),
+        resolution_(after != nullptr ? after->resolution() : before->resolution()),
         target_res_(target_res),
-        config_(config) {
-    ea_[kFree] = evidence(before.free_log_odds(), config);
-    ea_[kOccupied] = evidence(before.occupied_log_odds(), config);
-    eb_[kFree] = evidence(after.free_log_odds(), config);
-    eb_[kOccupied] = evidence(after.occupied_log_odds(), config);
+        config_(config),
+        emit_(std::move(emit)) {
+    if (before != nullptr) {
+      ea_[kFree] = evidence(before->free_log_odds(), config);
+      ea_[kOccupied] = evidence(before->occupied_log_odds(), config);
+    }
+    if (after != nullptr) {
+      eb_[kFree] = evidence(after->free_log_odds(), config);
+      eb_[kOccupied] = evidence(after->occupied_log_odds(), config);
+    }
     for (unsigned depth = 0; depth <= kTreeDepth; ++depth) {  // per leaf, as TreeDiff counts it
       leaf_work_[depth] = detail::leaf_fusion_work(std::max(1.0, std::ceil(node_size(depth) / target_res_)));
     }
@@ -177,8 +186,17 @@ class BodyDiff {
   void compare(unsigned ca, unsigned cb, const octomap::OcTreeKey& key, unsigned depth) {
     const std::int64_t ea = ca == kUnknown ? 0 : ea_[ca], eb = cb == kUnknown ? 0 : eb_[cb];
     if (ea == eb) return;
-    cubes.push_back({Eigen::Vector3d(coord(key[0], depth), coord(key[1], depth), coord(key[2], depth)),
-                     node_size(depth), eb - ea});
+    ChangedCube cube{Eigen::Vector3d(coord(key[0], depth), coord(key[1], depth), coord(key[2], depth)),
+                     node_size(depth), eb - ea};
+    if (emit_) {
+      emit_(cube);
+    } else {
+      cubes.push_back(cube);
+    }
+  }
+  static const std::vector<std::uint8_t>& no_body() {
+    static const std::vector<std::uint8_t> empty;
+    return empty;
   }
   /// Both maps have an inner node at (key, depth), at pa and pb.
   void both(std::size_t& pa, std::size_t& pb, const octomap::OcTreeKey& key, unsigned depth) {
@@ -268,11 +286,28 @@ class BodyDiff {
   double resolution_;
   double target_res_;
   const FuseConfig& config_;
+  std::function<void(const ChangedCube&)> emit_;
   std::int64_t ea_[3] = {0, 0, 0};
   std::int64_t eb_[3] = {0, 0, 0};
   double leaf_work_[kTreeDepth + 1] = {};  ///< fusion work of one leaf of the new map, by depth
   bool ok_ = true;
 };
+
+/// A whole map's evidence read off its binary body (no tree): its fusion work (estimate_work's
+/// measure) and, if `emit` is given, each leaf to it as a cube of +evidence (-evidence when
+/// `remove`). False, with nothing emitted, when the map has no body, its body is not a complete
+/// tree, or it is finer than the target grid (fine leaves are voted per voxel, on the tree).
+bool whole_body(const HeldMap& map, bool remove, double target_res, const FuseConfig& config,
+                const std::function<void(const ChangedCube&)>& emit, double& work) {
+  if (!map.binary_body() || map.resolution() < target_res * (1 - 1e-9)) return false;
+  const HeldMap* before = remove ? &map : nullptr;
+  const HeldMap* after = remove ? nullptr : &map;
+  BodyDiff check(before, after, target_res, config, [](const ChangedCube&) {});  // all or nothing
+  if (!check.run()) return false;
+  work = check.work;
+  if (emit) BodyDiff(before, after, target_res, config, emit).run();
+  return true;
+}
 
 /// Packed votes of source leaves finer than the target's voxels: the largest per voxel.
 using FineVotes = std::unordered_map<octomap::OcTreeKey, float, octomap::OcTreeKey::KeyHash>;
@@ -318,12 +353,22 @@ std::shared_ptr<const HeldMap> GlobalFusion::map_of(const std::string& robot) co
 std::size_t GlobalFusion::memory_usage() const { return sums_->memoryUsage(); }
 
 void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stats) {
-  const std::shared_ptr<const octomap::OcTree> tree = entry.map->tree();
-  const octomap::OcTree& map = *tree;
   const Eigen::Matrix4d& T = entry.T_global_robot;
   FuseResult counts;
   SumSink sink{*sums_};
   detail::LeafMapper<SumSink, std::int64_t> mapper(T, resolution_, sink, counts);
+  double work = 0.0;
+  const auto add = [&](const ChangedCube& cube) {
+    ++stats.cubes;
+    mapper.add_cube(cube.centre, cube.size, cube.delta);
+  };
+  if (whole_body(*entry.map, sign < 0, resolution_, config_, add, work)) {  // no tree built
+    stats.voxel_updates += counts.voxel_updates;
+    stats.block_updates += counts.block_updates;
+    return;
+  }
+  const std::shared_ptr<const octomap::OcTree> tree = entry.map->tree();
+  const octomap::OcTree& map = *tree;
   FineVotes fine;
   for (auto it = map.begin_leafs(), end = map.end_leafs(); it != end; ++it) {
     const float v = it->getLogOdds();
@@ -351,7 +396,7 @@ bool GlobalFusion::add_difference(const Entry& before, const Entry& after, Globa
   double work = 0.0;
   bool done = false;
   if (before.map->binary_body() && after.map->binary_body()) {
-    BodyDiff diff(*before.map, *after.map, resolution_, config_);
+    BodyDiff diff(before.map.get(), after.map.get(), resolution_, config_);
     if (diff.run()) {
       cubes = std::move(diff.cubes);
       work = diff.work;
@@ -409,7 +454,10 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
     r.ok = add_difference(it->second, next, r);
     r.incremental = r.ok;
   } else {
-    const double work = detail::estimate_work(*next.map->tree(), resolution_, config_.fuse_free);
+    double work = 0.0;
+    if (!whole_body(*next.map, false, resolution_, config_, nullptr, work)) {
+      work = detail::estimate_work(*next.map->tree(), resolution_, config_.fuse_free);
+    }
     r.work = work;
     r.ok = work <= config_.max_work;
     if (!r.ok) {
