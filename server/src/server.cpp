@@ -211,6 +211,7 @@ void Server::publish_global() {
       spdlog::debug("global map {} unchanged: poses published", version_);
       dds_->publish_poses(current_poses(), version_, config_.merge.global_frame);
     }
+    if (builder_.deferred()) dirty_ = true;  // robots still to fuse whole
     return;
   }
   const auto t_built = Clock::now();
