@@ -257,13 +257,15 @@ TEST(BlockPatches, MalformedPatchesAreRejectedWithAReason) {
   p.records = {0x00, 0x00};
   rejects({p}, "without children");
   p.records = {0x02};
-  rejects({p}, "end before a node");
+  rejects({p}, "mid-node");
   p.records = {0x02, 0x00, 0x00};
   rejects({p}, "bytes after");
   p.records = {0x03, 0x00, 0x03, 0x00, 0x03, 0x00, 0x03, 0x00, 0x03, 0x00, 0x02, 0x00};  // 6 levels below a block
-  rejects({p}, "deeper than the tree");
+  rejects({p}, "deeper than");
   p.records = {0xFF, 0xFF};  // 8 inner children announced, none follows
-  rejects({p}, "end before a node");
+  rejects({p}, "before a node");
+  p.records = {};
+  rejects({p}, "before a node");
   std::vector<BlockPatch> many;
   for (std::uint64_t b = 0; b < 200; ++b) many.push_back(BlockPatch{b, BlockState::kFree, {}});
   rejects(many, "more than 100 nodes");

@@ -1,7 +1,6 @@
 #include "mapmerge/map/global_delta.hpp"
 
 #include <algorithm>
-#include <array>
 #include <unordered_set>
 
 #include "tree_scan.hpp"
@@ -10,7 +9,6 @@ namespace mapmerge {
 namespace {
 
 constexpr unsigned kTreeDepth = 16;
-constexpr unsigned kBlockShift = kTreeDepth - kPatchBlockDepth;  ///< key bits inside a block
 
 /// OctoMap frees a node's child pointer array only when it prunes the node, and creates the root
 /// only inside updateNode(); these reach the members it keeps protected (pointers to members,
@@ -197,49 +195,21 @@ class Patcher {
   std::vector<std::uint64_t> unknown_;  ///< the patched blocks that are unknown now
 };
 
-/// Checks the records of one block's subtree: well formed, exactly `size` bytes. Returns the
-/// number of nodes, or 0 after setting `error`.
-std::size_t check_records(const std::vector<std::uint8_t>& records, std::string& error) {
-  // A block's root sits at depth kPatchBlockDepth: a scan of its records as a body (root at
-  // depth 0) must stay within 16 - kPatchBlockDepth levels, and no record may be empty.
-  std::array<std::uint8_t, kTreeDepth + 2> pending{};
-  pending[0] = 1;
-  int depth = 0;
-  std::size_t pos = 0, nodes = 1;
-  for (;;) {
-    while (depth >= 0 && pending[static_cast<std::size_t>(depth)] == 0) --depth;
-    if (depth < 0) break;
-    --pending[static_cast<std::size_t>(depth)];
-    if (records.size() - pos < 2) {
-      error = "records end before a node (byte " + std::to_string(pos) + ")";
-      return 0;
-    }
-    unsigned children = 0, inner = 0;
-    for (unsigned i = 0; i < 8; ++i) {
-      const unsigned code = detail::binary_child_code(records.data() + pos, i);
-      children += code != 0;
-      inner += code == 3;
-    }
-    pos += 2;
-    if (children == 0) {
-      error = "a record without children (byte " + std::to_string(pos - 2) + ")";
-      return 0;
-    }
-    nodes += children;
-    if (inner > 0) {
-      if (static_cast<unsigned>(depth) + 1 >= kBlockShift) {
-        error = "records deeper than the tree (byte " + std::to_string(pos - 2) + ")";
-        return 0;
-      }
-      ++depth;
-      pending[static_cast<std::size_t>(depth)] = static_cast<std::uint8_t>(inner);
-    }
+/// Checks the records of one block's subtree (a body whose root sits at kPatchBlockDepth, with
+/// at least one child): well formed, every byte used. Returns the number of nodes, or 0 after
+/// setting `error`.
+std::size_t check_records(const std::vector<std::uint8_t>& records, std::size_t max_nodes, std::string& error) {
+  const detail::TreeScan scan = detail::scan_binary_body(records.data(), records.size(), max_nodes, kPatchBlockDepth);
+  if (scan.error != DecodeError::kNone) {
+    error = scan.reason;
+  } else if (scan.num_nodes == 0) {
+    error = "records end before a node (byte 0)";
+  } else if (scan.root_only) {
+    error = "a record without children (byte 0)";
+  } else {
+    return scan.num_nodes;
   }
-  if (pos != records.size()) {
-    error = std::to_string(records.size() - pos) + " bytes after the block's subtree";
-    return 0;
-  }
-  return nodes;
+  return 0;
 }
 
 }  // namespace
@@ -270,7 +240,7 @@ std::string check_block_patches(const std::vector<BlockPatch>& patches, std::siz
       ++nodes;
     } else {
       std::string error;
-      const std::size_t n = check_records(p.records, error);
+      const std::size_t n = check_records(p.records, max_nodes, error);
       if (n == 0) return which + error;
       nodes += n;
     }

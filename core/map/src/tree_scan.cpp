@@ -23,9 +23,9 @@ TreeScan fail(DecodeError error, std::string reason) {
 /// Walks a depth-first body with an explicit per-level counter of nodes still to read, so hostile
 /// input can neither recurse nor run past the buffer. `read_node` consumes one node at `pos` and
 /// returns how many of its children follow in the stream (or -1 after filling `scan` on error).
-/// `kMaxFollowerDepth`: deepest level at which a node may be followed by its own record.
-template <std::size_t kNodeBytes, int kMaxFollowerDepth, typename ReadNode>
-TreeScan walk(const std::uint8_t* data, std::size_t size, std::size_t max_nodes,
+/// `max_follower_depth`: deepest level at which a node may be followed by its own record.
+template <std::size_t kNodeBytes, typename ReadNode>
+TreeScan walk(const std::uint8_t* data, std::size_t size, std::size_t max_nodes, int max_follower_depth,
               ReadNode read_node) {
   TreeScan scan;
   if (size == 0) return scan;  // an empty tree has no body at all
@@ -53,7 +53,7 @@ TreeScan walk(const std::uint8_t* data, std::size_t size, std::size_t max_nodes,
                   "more than " + std::to_string(max_nodes) + " nodes" + at(pos, depth));
     }
     if (followers > 0) {
-      if (depth + 1 > kMaxFollowerDepth) {
+      if (depth + 1 > max_follower_depth) {
         return fail(DecodeError::kTooDeep, "tree deeper than 16 levels" + at(pos, depth));
       }
       ++depth;
@@ -71,12 +71,14 @@ TreeScan walk(const std::uint8_t* data, std::size_t size, std::size_t max_nodes,
 
 }  // namespace
 
-TreeScan scan_binary_body(const std::uint8_t* data, std::size_t size, std::size_t max_nodes) {
+TreeScan scan_binary_body(const std::uint8_t* data, std::size_t size, std::size_t max_nodes, unsigned root_depth) {
+  if (root_depth >= static_cast<unsigned>(kTreeDepth)) return fail(DecodeError::kTooDeep, "a subtree below the last level");
+  const int top = static_cast<int>(root_depth);
   // Child codes: binary_child_code().
-  auto read_node = [](const std::uint8_t* p, int depth, std::size_t pos, std::uint32_t& children,
-                      std::uint32_t& inner, TreeScan& scan) {
-    const std::uint64_t child_voxels = std::uint64_t{1} << (3 * (kTreeDepth - 1 - depth));
-    const double child_width = static_cast<double>(1U << (kTreeDepth - 1 - depth));
+  auto read_node = [top](const std::uint8_t* p, int depth, std::size_t pos, std::uint32_t& children,
+                         std::uint32_t& inner, TreeScan& scan) {
+    const std::uint64_t child_voxels = std::uint64_t{1} << (3 * (kTreeDepth - 1 - depth - top));
+    const double child_width = static_cast<double>(1U << (kTreeDepth - 1 - depth - top));
     for (int i = 0; i < 8; ++i) {
       const unsigned code = binary_child_code(p, static_cast<unsigned>(i));
       children += code != 0;
@@ -91,7 +93,7 @@ TreeScan scan_binary_body(const std::uint8_t* data, std::size_t size, std::size_
     return true;
   };
   // Inner nodes (code 3) have children one level further down: at most at depth 15.
-  return walk<2, kTreeDepth - 1>(data, size, max_nodes, read_node);
+  return walk<2>(data, size, max_nodes, kTreeDepth - 1 - top, read_node);
 }
 
 TreeScan scan_full_body(const std::uint8_t* data, std::size_t size, std::size_t max_nodes) {
@@ -112,7 +114,7 @@ TreeScan scan_full_body(const std::uint8_t* data, std::size_t size, std::size_t 
     }
     return true;
   };
-  return walk<5, kTreeDepth>(data, size, max_nodes, read_node);
+  return walk<5>(data, size, max_nodes, kTreeDepth, read_node);
 }
 
 }  // namespace mapmerge::detail

@@ -36,8 +36,10 @@ struct TreeScan {
 };
 
 /// Checks a binary body (OcTree::writeBinaryData: per node 2 bytes of 8 two-bit child codes,
-/// depth-first). Every byte must be consumed; depth <= 16; at most `max_nodes` nodes.
-TreeScan scan_binary_body(const std::uint8_t* data, std::size_t size, std::size_t max_nodes);
+/// depth-first). Every byte must be consumed; depth <= 16; at most `max_nodes` nodes. With
+/// `root_depth`, the records of a subtree whose root sits at that depth of a tree (a block).
+TreeScan scan_binary_body(const std::uint8_t* data, std::size_t size, std::size_t max_nodes,
+                          unsigned root_depth = 0);
 
 /// Checks a full body (OcTree::writeData: per node a float log-odds + 1 byte child mask,
 /// depth-first). Every byte must be consumed; depth <= 16; values finite; at most `max_nodes`.
