@@ -3,26 +3,13 @@
 #include <algorithm>
 #include <unordered_set>
 
+#include "octree_internals.hpp"
 #include "tree_scan.hpp"
 
 namespace mapmerge {
 namespace {
 
 constexpr unsigned kTreeDepth = 16;
-
-/// OctoMap frees a node's child pointer array only when it prunes the node, and creates the root
-/// only inside updateNode(); these reach the members it keeps protected (pointers to members,
-/// formed through derived classes as the language allows), so that a patch leaves no emptied
-/// array behind and can create the root of an empty tree.
-struct NodeAccess : octomap::OcTreeNode {
-  static constexpr auto kChildren = &NodeAccess::children;
-};
-struct TreeAccess : octomap::OcTree {
-  static constexpr auto kRoot = &TreeAccess::root;
-  static constexpr auto kTreeSize = &TreeAccess::tree_size;
-  static constexpr auto kSizeChanged = &TreeAccess::size_changed;
-};
-using Base = octomap::OcTreeBaseImpl<octomap::OcTreeNode, octomap::AbstractOccupancyOcTree>;
 
 /// Child index of the node at `depth` on the way to `key`.
 unsigned child_at(const octomap::OcTreeKey& key, unsigned depth) {
@@ -94,18 +81,11 @@ class Patcher {
   }
 
  private:
-  octomap::OcTreeNode* root() {
-    Base& base = tree_;
-    return base.*TreeAccess::kRoot;
-  }
+  octomap::OcTreeNode* root() { return tree_.getRoot(); }
 
   octomap::OcTreeNode* make_root() {
-    Base& base = tree_;
-    auto* r = new octomap::OcTreeNode();
+    octomap::OcTreeNode* r = detail::create_root(tree_);
     r->setLogOdds(tree_.getClampingThresMaxLog());
-    base.*TreeAccess::kRoot = r;
-    ++(base.*TreeAccess::kTreeSize);
-    base.*TreeAccess::kSizeChanged = true;
     return r;
   }
 
@@ -137,7 +117,7 @@ class Patcher {
   void remove_if_empty(std::uint64_t prefix, unsigned depth) {
     auto [node, parent] = find(prefix, depth);
     if (node == nullptr || parent == nullptr || tree_.nodeHasChildren(node)) return;
-    free_children_array(node);
+    detail::free_children_array(node);
     tree_.deleteNodeChild(parent, child_at(prefix_key(prefix, depth), depth - 1));
   }
 
@@ -145,7 +125,7 @@ class Patcher {
     auto [node, parent] = find(prefix, depth);
     if (node == nullptr) return;
     if (!tree_.nodeHasChildren(node)) {  // all its blocks went unknown
-      free_children_array(node);
+      detail::free_children_array(node);
       tree_.deleteNodeChild(parent, child_at(prefix_key(prefix, depth), depth - 1));
       return;
     }
@@ -154,20 +134,15 @@ class Patcher {
   }
 
   void erase_children(octomap::OcTreeNode* node) {
-    if (node->*NodeAccess::kChildren == nullptr) return;
+    if (node->*detail::NodeInternals<octomap::OcTreeNode>::kChildren == nullptr) return;  // no array
     for (unsigned i = 0; i < 8; ++i) {
       if (!tree_.nodeChildExists(node, i)) continue;
       erase_children(tree_.getNodeChild(node, i));  // depth <= 16: bounded recursion
       tree_.deleteNodeChild(node, i);
     }
-    free_children_array(node);
+    detail::free_children_array(node);
   }
 
-  static void free_children_array(octomap::OcTreeNode* node) {
-    auto& children = node->*NodeAccess::kChildren;
-    delete[] children;
-    children = nullptr;
-  }
 
   /// Reads one checked subtree's records into `node` as decode_map() does: leaves at the
   /// clamping thresholds, inner nodes the maximum of their children.

@@ -2,6 +2,8 @@
 
 #include <algorithm>
 
+#include "octree_internals.hpp"
+
 namespace mapmerge::detail {
 namespace {
 constexpr unsigned kTreeDepth = 16;
@@ -144,7 +146,7 @@ void SumTree::drop_child(SumNode* parent, unsigned i, std::size_t& deleted) {
   for (unsigned k = 0; k < 8; ++k) {
     if (nodeChildExists(child, k)) drop_child(child, k, deleted);  // depth <= 16: bounded recursion
   }
-  child->free_children_array();
+  free_children_array(child);
   parent->delete_child(i);
   ++deleted;
 }
@@ -153,7 +155,7 @@ bool SumTree::prune(SumNode* node, std::size_t& deleted) {
   if (!isNodeCollapsible(node)) return false;  // as OcTreeBaseImpl::pruneNode
   node->copyData(*getNodeChild(node, 0));
   for (unsigned i = 0; i < 8; ++i) node->delete_child(i);
-  node->free_children_array();
+  free_children_array(node);
   deleted += 8;
   return true;
 }

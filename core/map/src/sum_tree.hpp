@@ -26,11 +26,6 @@ class SumNode : public octomap::OcTreeDataNode<std::int64_t> {
  public:
   SumNode() : octomap::OcTreeDataNode<std::int64_t>(0) {}
   explicit SumNode(std::int64_t value) : octomap::OcTreeDataNode<std::int64_t>(value) {}
-  /// Frees the (emptied) child pointer array before the node is deleted.
-  void free_children_array() {
-    delete[] children;
-    children = nullptr;
-  }
   /// Deletes child `i` (a leaf, or emptied), as OcTreeBaseImpl::deleteNodeChild but leaving the
   /// tree's node count to SumTree::account().
   void delete_child(unsigned i) {

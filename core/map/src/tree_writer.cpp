@@ -2,19 +2,12 @@
 
 #include <algorithm>
 
+#include "octree_internals.hpp"
+
 namespace mapmerge::detail {
 namespace {
 
-using Base = octomap::OcTreeBaseImpl<octomap::OcTreeNode, octomap::AbstractOccupancyOcTree>;
 constexpr unsigned kTreeDepth = 16;
-
-/// OctoMap creates the root only inside updateNode(); these give TreeWriter the same access
-/// (pointers to protected members, formed through a derived class as the language allows).
-struct Internals : octomap::OcTree {
-  static constexpr auto kRoot = &Internals::root;
-  static constexpr auto kTreeSize = &Internals::tree_size;
-  static constexpr auto kSizeChanged = &Internals::size_changed;
-};
 
 }  // namespace
 
@@ -29,13 +22,10 @@ float TreeWriter::clamp(float value) const {
 
 octomap::OcTreeNode* TreeWriter::descend(const octomap::OcTreeKey& key, unsigned depth,
                                          bool& fresh) {
-  Base& base = tree_;
-  octomap::OcTreeNode*& root = base.*Internals::kRoot;
+  octomap::OcTreeNode* root = tree_.getRoot();
   fresh = false;
   if (root == nullptr) {
-    root = new octomap::OcTreeNode();
-    ++(base.*Internals::kTreeSize);
-    base.*Internals::kSizeChanged = true;
+    root = create_root(tree_);
     path_depth_ = 0;
     fresh = true;
   }
