@@ -8,7 +8,7 @@
 namespace mapmerge {
 namespace {
 
-constexpr unsigned kTreeDepth = 16;
+using detail::kTreeDepth;
 
 /// The leaves' cubes as integer voxel bounds: [lo, hi) in key units at full depth.
 class BoundsWalk {

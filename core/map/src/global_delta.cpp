@@ -9,7 +9,7 @@
 namespace mapmerge {
 namespace {
 
-constexpr unsigned kTreeDepth = 16;
+using detail::kTreeDepth;
 
 /// Child index of the node at `depth` on the way to `key`.
 unsigned child_at(const octomap::OcTreeKey& key, unsigned depth) {

@@ -15,7 +15,7 @@
 namespace mapmerge {
 namespace {
 
-constexpr unsigned kTreeDepth = 16;
+using detail::kTreeDepth;
 
 /// GlobalFusion's sink: packed evidence added to the sums.
 struct SumSink {

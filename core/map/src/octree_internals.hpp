@@ -7,6 +7,8 @@
 
 namespace mapmerge::detail {
 
+constexpr unsigned kTreeDepth = 16;  ///< OctoMap's fixed number of levels below the root
+
 template <class Node>
 struct NodeInternals : Node {
   static constexpr auto kChildren = &NodeInternals::children;

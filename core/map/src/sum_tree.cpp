@@ -5,9 +5,6 @@
 #include "octree_internals.hpp"
 
 namespace mapmerge::detail {
-namespace {
-constexpr unsigned kTreeDepth = 16;
-}  // namespace
 
 SumNode* SumTree::new_child(SumNode* node, unsigned i, std::int64_t value) {
   SumNode* child = createNodeChild(node, i);  // a SumNode() holds 0

@@ -7,7 +7,7 @@
 namespace mapmerge::detail {
 namespace {
 
-constexpr int kTreeDepth = 16;  ///< OctoMap's fixed number of levels below the root
+constexpr int kLevels = static_cast<int>(kTreeDepth);  ///< as an int, for depth arithmetic
 
 std::string at(std::size_t pos, int depth) {
   return " (byte " + std::to_string(pos) + ", depth " + std::to_string(depth) + ")";
@@ -29,7 +29,7 @@ TreeScan walk(const std::uint8_t* data, std::size_t size, std::size_t max_nodes,
               ReadNode read_node) {
   TreeScan scan;
   if (size == 0) return scan;  // an empty tree has no body at all
-  std::array<std::uint8_t, kTreeDepth + 2> pending{};
+  std::array<std::uint8_t, kLevels + 2> pending{};
   pending[0] = 1;
   int depth = 0;
   std::size_t pos = 0;
@@ -72,13 +72,13 @@ TreeScan walk(const std::uint8_t* data, std::size_t size, std::size_t max_nodes,
 }  // namespace
 
 TreeScan scan_binary_body(const std::uint8_t* data, std::size_t size, std::size_t max_nodes, unsigned root_depth) {
-  if (root_depth >= static_cast<unsigned>(kTreeDepth)) return fail(DecodeError::kTooDeep, "a subtree below the last level");
+  if (root_depth >= kTreeDepth) return fail(DecodeError::kTooDeep, "a subtree below the last level");
   const int top = static_cast<int>(root_depth);
   // Child codes: binary_child_code().
   auto read_node = [top](const std::uint8_t* p, int depth, std::size_t pos, std::uint32_t& children,
                          std::uint32_t& inner, TreeScan& scan) {
-    const std::uint64_t child_voxels = std::uint64_t{1} << (3 * (kTreeDepth - 1 - depth - top));
-    const double child_width = static_cast<double>(1U << (kTreeDepth - 1 - depth - top));
+    const std::uint64_t child_voxels = std::uint64_t{1} << (3 * (kLevels - 1 - depth - top));
+    const double child_width = static_cast<double>(1U << (kLevels - 1 - depth - top));
     for (int i = 0; i < 8; ++i) {
       const unsigned code = binary_child_code(p, static_cast<unsigned>(i));
       children += code != 0;
@@ -93,7 +93,7 @@ TreeScan scan_binary_body(const std::uint8_t* data, std::size_t size, std::size_
     return true;
   };
   // Inner nodes (code 3) have children one level further down: at most at depth 15.
-  return walk<2>(data, size, max_nodes, kTreeDepth - 1 - top, read_node);
+  return walk<2>(data, size, max_nodes, kLevels - 1 - top, read_node);
 }
 
 TreeScan scan_full_body(const std::uint8_t* data, std::size_t size, std::size_t max_nodes) {
@@ -109,12 +109,12 @@ TreeScan scan_full_body(const std::uint8_t* data, std::size_t size, std::size_t 
     for (int i = 0; i < 8; ++i) children += (p[4] >> i) & 1U;
     followers = children;
     if (children == 0 && depth > 0) {
-      if (value >= 0.0F) scan.occupied_voxels += std::uint64_t{1} << (3 * (kTreeDepth - depth));
-      scan.fusion_work += leaf_fusion_work(static_cast<double>(1U << (kTreeDepth - depth)));
+      if (value >= 0.0F) scan.occupied_voxels += std::uint64_t{1} << (3 * (kLevels - depth));
+      scan.fusion_work += leaf_fusion_work(static_cast<double>(1U << (kLevels - depth)));
     }
     return true;
   };
-  return walk<5>(data, size, max_nodes, kTreeDepth, read_node);
+  return walk<5>(data, size, max_nodes, kLevels, read_node);
 }
 
 }  // namespace mapmerge::detail

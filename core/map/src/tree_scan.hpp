@@ -9,6 +9,7 @@
 #include <octomap/OcTree.h>
 
 #include "mapmerge/map/map_codec.hpp"
+#include "octree_internals.hpp"
 
 namespace mapmerge::detail {
 

@@ -5,11 +5,6 @@
 #include "octree_internals.hpp"
 
 namespace mapmerge::detail {
-namespace {
-
-constexpr unsigned kTreeDepth = 16;
-
-}  // namespace
 
 TreeWriter::TreeWriter(octomap::OcTree& tree)
     : tree_(tree),
