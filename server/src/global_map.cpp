@@ -161,15 +161,15 @@ std::optional<GlobalMapOut> GlobalMapBuilder::build(const Registry& registry, st
   g.data = encoding == Encoding::kOctomapBt ? std::move(e.bt) : encode_map(*fusion_->tree(), encoding);
   g.ros_body = std::move(e.body);
   g.hash = payload_hash(g.data);
+  stages_ = Stages{std::chrono::duration<double>(t1 - t0).count(),
+                   std::chrono::duration<double>(std::chrono::steady_clock::now() - t1).count(), sync.updated,
+                   sync.incremental, sync.from_bodies};
   const auto same = [](const Contribution& a, const Contribution& b) {
     return a.robot_id == b.robot_id && a.session_id == b.session_id && a.sequence == b.sequence;
   };
   if (last_built_ && g.hash == last_built_->second && g.contributors.size() == last_contributors_.size() &&
       std::equal(g.contributors.begin(), g.contributors.end(), last_contributors_.begin(), same)) {
     unchanged_ = true;  // e.g. a refinement moved a robot by less than half a voxel: no new version
-    stages_ = Stages{std::chrono::duration<double>(t1 - t0).count(),
-                     std::chrono::duration<double>(std::chrono::steady_clock::now() - t1).count(), sync.updated,
-                     sync.incremental, sync.from_bodies};
     return std::nullopt;
   }
   last_contributors_ = g.contributors;
@@ -182,9 +182,6 @@ std::optional<GlobalMapOut> GlobalMapBuilder::build(const Registry& registry, st
   g.frame_id = config_.merge.global_frame;
   g.resolution = resolution;
   g.encoding = to_string(encoding);
-  const auto t2 = std::chrono::steady_clock::now();
-  stages_ = Stages{std::chrono::duration<double>(t1 - t0).count(), std::chrono::duration<double>(t2 - t1).count(),
-                   sync.updated, sync.incremental, sync.from_bodies};
   return g;
 }
 

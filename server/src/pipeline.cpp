@@ -114,13 +114,11 @@ bool Pipeline::ingest(const MapSample& m, bool persist) {
     spdlog::error("robot {}: map {}/{} served from memory only until the store works again", robot, m.session_id,
                   m.sequence);
   }
-  if (new_session) {
-    // Not while an alignment of the old session installs its edge (accept_edge checks sessions).
-    std::lock_guard<std::mutex> lock(alignment_mutex_);
-    registry_.put_map(std::move(r));
-  } else {
-    registry_.put_map(std::move(r));
-  }
+  // A new session not while an alignment of the old one installs its edge (accept_edge checks).
+  std::unique_lock<std::mutex> lock(alignment_mutex_, std::defer_lock);
+  if (new_session) lock.lock();
+  registry_.put_map(std::move(r));
+  if (lock.owns_lock()) lock.unlock();
   ++accepted_;
   spdlog::info("robot {}: map {}/{} accepted ({} nodes, {:.3f} m; check {:.0f} ms, store {:.0f} ms)", robot,
                m.session_id, m.sequence, nodes, decoded.map->resolution(), decode_s * 1e3, seconds_since(t1) * 1e3);
