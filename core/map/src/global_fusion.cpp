@@ -297,14 +297,17 @@ class BodyDiff {
 /// measure) and, if `emit` is given, each leaf to it as a cube of +evidence (-evidence when
 /// `remove`). False, with nothing emitted, when the map has no body, its body is not a complete
 /// tree, or it is finer than the target grid (fine leaves are voted per voxel, on the tree).
+/// `checked`: a call of this map without `emit` returned true already (its work is not counted).
 bool whole_body(const HeldMap& map, bool remove, double target_res, const FuseConfig& config,
-                const std::function<void(const ChangedCube&)>& emit, double& work) {
+                const std::function<void(const ChangedCube&)>& emit, double& work, bool checked = false) {
   if (!map.binary_body() || map.resolution() < target_res * (1 - 1e-9)) return false;
   const HeldMap* before = remove ? &map : nullptr;
   const HeldMap* after = remove ? nullptr : &map;
-  BodyDiff check(before, after, target_res, config, [](const ChangedCube&) {});  // all or nothing
-  if (!check.run()) return false;
-  work = check.work;
+  if (!checked) {
+    BodyDiff check(before, after, target_res, config, [](const ChangedCube&) {});  // all or nothing
+    if (!check.run()) return false;
+    work = check.work;
+  }
   if (emit) BodyDiff(before, after, target_res, config, emit).run();
   return true;
 }
@@ -352,7 +355,7 @@ std::shared_ptr<const HeldMap> GlobalFusion::map_of(const std::string& robot) co
 
 std::size_t GlobalFusion::memory_usage() const { return sums_->memoryUsage(); }
 
-void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stats) {
+void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stats, bool body_checked) {
   const Eigen::Matrix4d& T = entry.T_global_robot;
   FuseResult counts;
   SumSink sink{*sums_};
@@ -362,7 +365,7 @@ void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stat
     ++stats.cubes;
     mapper.add_cube(cube.centre, cube.size, cube.delta);
   };
-  if (whole_body(*entry.map, sign < 0, resolution_, config_, add, work)) {  // no tree built
+  if (whole_body(*entry.map, sign < 0, resolution_, config_, add, work, body_checked)) {  // no tree built
     stats.voxel_updates += counts.voxel_updates;
     stats.block_updates += counts.block_updates;
     return;
@@ -455,9 +458,8 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
     r.incremental = r.ok;
   } else {
     double work = 0.0;
-    if (!whole_body(*next.map, false, resolution_, config_, nullptr, work)) {
-      work = detail::estimate_work(*next.map->tree(), resolution_, config_.fuse_free);
-    }
+    const bool body = whole_body(*next.map, false, resolution_, config_, nullptr, work);
+    if (!body) work = detail::estimate_work(*next.map->tree(), resolution_, config_.fuse_free);
     r.work = work;
     r.ok = work <= config_.max_work;
     if (!r.ok) {
@@ -465,7 +467,7 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
                  " voxel visits, more than max_work (huge pruned leaves?)";
     } else {
       if (it != robots_.end()) add_full(it->second, -1, r);
-      add_full(next, +1, r);
+      add_full(next, +1, r, body);
     }
   }
   if (!r.ok) {

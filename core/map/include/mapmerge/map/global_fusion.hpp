@@ -131,7 +131,8 @@ class GlobalFusion {
     std::shared_ptr<const HeldMap> map;
     Eigen::Matrix4d T_global_robot;
   };
-  void add_full(const Entry& entry, int sign, GlobalFuseResult& stats);
+  /// `body_checked`: the entry's binary body was just scanned whole (as in set()): not again.
+  void add_full(const Entry& entry, int sign, GlobalFuseResult& stats, bool body_checked = false);
   bool add_difference(const Entry& before, const Entry& after, GlobalFuseResult& stats);
 
   double resolution_;
