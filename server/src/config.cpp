@@ -48,7 +48,7 @@ void read_merge(const YAML::Node& n, MergeConfig& c) {
                           "refine_min_change", "search_blocks_fallback",
                           "refine_republish_translation", "refine_republish_rotation_deg", "extra_pairs",
                           "extra_min_overlap", "extra_overlap_samples", "extra_global_fallback", "extra_max_jobs",
-                          "keep_lost_maps", "session_conflict_hold_s"});
+                          "keep_lost_maps", "alignment_data_hold_s", "session_conflict_hold_s"});
   read(n, "threads", c.threads, "merge");
   read(n, "ingest_threads", c.ingest_threads, "merge");
   read(n, "merge_nice", c.merge_nice, "merge");
@@ -66,6 +66,7 @@ void read_merge(const YAML::Node& n, MergeConfig& c) {
   read(n, "extra_global_fallback", c.extra_global_fallback, "merge");
   read(n, "extra_max_jobs", c.extra_max_jobs, "merge");
   read(n, "keep_lost_maps", c.keep_lost_maps, "merge");
+  read(n, "alignment_data_hold_s", c.alignment_data_hold_s, "merge");
   read(n, "session_conflict_hold_s", c.session_conflict_hold_s, "merge");
 }
 
@@ -115,6 +116,9 @@ void check(const ServerConfig& c) {
   if (c.merge.extra_max_jobs < 0) throw ConfigError("merge.extra_max_jobs must be >= 0");
   if (!(c.merge.session_conflict_hold_s >= 0.0) || !std::isfinite(c.merge.session_conflict_hold_s)) {
     throw ConfigError("merge.session_conflict_hold_s must be a finite number >= 0");
+  }
+  if (!(c.merge.alignment_data_hold_s >= 0.0) || !std::isfinite(c.merge.alignment_data_hold_s)) {
+    throw ConfigError("merge.alignment_data_hold_s must be a finite number >= 0");
   }
   if (c.publish.min_interval_s < 0.0 || c.publish.republish_period_s <= 0.0 || c.publish.status_period_s <= 0.0) {
     throw ConfigError("publish periods must be positive");

@@ -14,38 +14,6 @@
 
 namespace mapmerge::server {
 
-double estimate_overlap(const octomap::OcTree& target, const octomap::OcTree& source,
-                        const Eigen::Matrix4d& T_target_source, std::size_t samples) {
-  const Eigen::AlignedBox3d target_box = leaf_bounds(target);
-  const Eigen::AlignedBox3d source_box = leaf_bounds(source);
-  if (target_box.isEmpty() || source_box.isEmpty()) return 0.0;
-  Eigen::AlignedBox3d moved;  // the source's box in the target frame (axis-aligned hull)
-  for (int c = 0; c < 8; ++c) {
-    moved.extend((T_target_source * source_box.corner(static_cast<Eigen::AlignedBox3d::CornerType>(c)).homogeneous())
-                     .head<3>());
-  }
-  if (!moved.intersects(target_box)) return 0.0;
-  std::size_t occupied = 0;
-  for (auto it = source.begin_leafs(), end = source.end_leafs(); it != end; ++it) occupied += source.isNodeOccupied(*it);
-  const std::size_t stride = std::max<std::size_t>(1, occupied / std::max<std::size_t>(1, samples));
-  const double r = target.getResolution();
-  std::size_t seen = 0, hit = 0, i = 0;
-  for (auto it = source.begin_leafs(), end = source.end_leafs(); it != end; ++it) {
-    if (!source.isNodeOccupied(*it) || (i++ % stride) != 0) continue;
-    const Eigen::Vector3d p = (T_target_source * Eigen::Vector4d(it.getX(), it.getY(), it.getZ(), 1.0)).head<3>();
-    ++seen;
-    bool found = false;  // an occupied target voxel within one voxel
-    for (int dx = -1; dx <= 1 && !found; ++dx)
-      for (int dy = -1; dy <= 1 && !found; ++dy)
-        for (int dz = -1; dz <= 1 && !found; ++dz) {
-          const auto* n = target.search(p.x() + dx * r, p.y() + dy * r, p.z() + dz * r);
-          found = n != nullptr && target.isNodeOccupied(n);
-        }
-    hit += found ? 1 : 0;
-  }
-  return seen == 0 ? 0.0 : static_cast<double>(hit) / static_cast<double>(seen);
-}
-
 DecodedMap decode_sample(const MapSample& s, const DecodeLimits& limits) {
   DecodedMap out;
   if (!wire::is_valid_robot_id(s.robot_id)) {
@@ -102,7 +70,7 @@ Edge make_edge(const RobotRecord& target, const RobotRecord& source, const align
   e.overlap = result.overlap;
   if (target.map && source.map) {
     const Eigen::Isometry3d T(result.T_target_source);
-    e.pivot_source = graph::overlap_pivot(leaf_bounds(*source.map->tree()), leaf_bounds(*target.map->tree()), T);
+    e.pivot_source = graph::overlap_pivot(leaf_bounds(*source.map), leaf_bounds(*target.map), T);
   }
   const graph::EdgeInformation info =
       graph::information_from_alignment({e.inliers, e.fitness, e.overlap, e.pivot_source});

@@ -6,6 +6,8 @@
 #include <cmath>
 #include <string_view>
 
+#include <malloc.h>
+
 #include <spdlog/spdlog.h>
 
 #include "mapmerge/server/merge_ops.hpp"
@@ -53,6 +55,7 @@ void Pipeline::process(const std::string& robot, std::optional<MapSample> map, b
   const auto job_of = [&](const std::string& suffix) {
     return robot.size() > suffix.size() && robot.compare(robot.size() - suffix.size(), suffix.size(), suffix) == 0;
   };
+  if (robot == release_job()) return release_turn();
   if (job_of(refine_job(""))) return refine_turn(robot.substr(0, robot.size() - refine_job("").size()));
   if (job_of(search_job(""))) return search_turn(robot.substr(0, robot.size() - search_job("").size()));
   if (map && unchanged(*map)) {
@@ -180,9 +183,27 @@ void Pipeline::refine_turn(const std::string& robot) {
   if (refine_known(*rec)) on_new_alignment(robot, false);
 }
 
+bool Pipeline::alignment_data_idle() const {
+  const auto cutoff = Registry::Clock::now() - std::chrono::duration_cast<Registry::Clock::duration>(
+                                                    std::chrono::duration<double>(config_.merge.alignment_data_hold_s));
+  return !registry_.idle_alignment_data(cutoff).empty();
+}
+
+void Pipeline::release_turn() {
+  const auto cutoff = Registry::Clock::now() - std::chrono::duration_cast<Registry::Clock::duration>(
+                                                    std::chrono::duration<double>(config_.merge.alignment_data_hold_s));
+  const auto released = registry_.release_alignment_data(cutoff);
+  if (released.empty()) return;
+  malloc_trim(0);  // the octrees' pages back to the system (~5 ms; on a merge thread)
+  std::string who;
+  for (const auto& id : released) who += " " + id;
+  spdlog::debug("alignment data of{} let go of: not used for {:.0f} s", who, config_.merge.alignment_data_hold_s);
+}
+
 std::shared_ptr<const align::PreparedMap> Pipeline::prepared(const std::string& robot, bool features) {
   const auto rec = registry_.get(robot);
   if (!rec || !rec->map) return nullptr;
+  registry_.note_alignment_use(robot);
   if (rec->prepared && (!features || rec->prepared->has_features())) return rec->prepared;
   std::string error;
   const auto t0 = std::chrono::steady_clock::now();
@@ -194,6 +215,7 @@ std::shared_ptr<const align::PreparedMap> Pipeline::prepared(const std::string& 
     return nullptr;
   }
   registry_.set_prepared(robot, rec->map_revision, p);
+  registry_.note_alignment_use(robot);  // a long preparation: held from its end on
   return p;
 }
 
@@ -434,7 +456,7 @@ double Pipeline::cached_overlap(const RobotRecord& target, const RobotRecord& so
       }
     }
   }
-  const double overlap = estimate_overlap(*target.map->tree(), *source.map->tree(), T_target_source,
+  const double overlap = estimate_overlap(*target.map->occupied_leaves(), *source.map->occupied_leaves(), T_target_source,
                                           static_cast<std::size_t>(config_.merge.extra_overlap_samples));
   std::lock_guard<std::mutex> lock(pairs_mutex_);
   overlaps_[key] = {target.content_hash, source.content_hash, T_target_source, overlap};

@@ -4,6 +4,7 @@
 #include <cstdio>
 #include <set>
 #include <stdexcept>
+#include <utility>
 
 #include <spdlog/spdlog.h>
 
@@ -211,6 +212,46 @@ void Registry::mark_tried(const std::string& robot, std::uint64_t revision, cons
   auto it = records_.find(robot);
   if (it == records_.end() || it->second->map_revision != revision) return;
   mutable_record(robot).tried.insert(other);
+}
+
+void Registry::note_alignment_use(const std::string& robot, Clock::time_point now) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  Clock::time_point& t = alignment_use_[robot];
+  t = std::max(t, now);
+}
+
+std::vector<std::string> Registry::idle_alignment_data(Clock::time_point cutoff) const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  std::vector<std::string> idle;
+  for (const auto& [id, rec] : records_) {
+    if (!rec->map || (!rec->prepared && !(rec->map->binary_body() && rec->map->has_tree()))) continue;
+    const auto used = alignment_use_.find(id);
+    if (used == alignment_use_.end() || used->second < cutoff) idle.push_back(id);
+  }
+  return idle;
+}
+
+std::vector<std::string> Registry::release_alignment_data(Clock::time_point cutoff) {
+  const std::vector<std::string> idle = idle_alignment_data(cutoff);
+  std::vector<std::shared_ptr<const align::PreparedMap>> freed;  // freed after the lock is let go of
+  std::vector<std::string> released;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    for (const std::string& id : idle) {
+      const auto used = alignment_use_.find(id);
+      if (used != alignment_use_.end() && used->second >= cutoff) continue;  // used meanwhile
+      const auto it = records_.find(id);
+      if (it == records_.end() || !it->second->map) continue;
+      if (it->second->prepared) freed.push_back(std::exchange(mutable_record(id).prepared, nullptr));
+      released.push_back(id);
+    }
+  }
+  freed.clear();
+  for (const std::string& id : released) {
+    // The tree goes once the prepared map that shares it is gone (a running alignment keeps both).
+    if (const auto rec = get(id); rec && rec->map) rec->map->release_tree();
+  }
+  return released;
 }
 
 void Registry::put_edge(const Edge& edge) {

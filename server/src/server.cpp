@@ -192,6 +192,7 @@ void Server::loop_once() {
   if (now - last_status_ >= seconds(config_.publish.status_period_s)) {
     publish_status();
     if (store_) store_->checkpoint();  // here, not after a commit on the update path
+    if (pipeline_->alignment_data_idle()) scheduler_->background(Pipeline::release_job());
     if (std::exchange(trim_due_, false)) {
       // Replaced maps were freed since: give their pages back (RSS of fr_079 x2 at 1 Hz 417 ->
       // 220 MB; ~5 ms, on this loop after the publication, not on the update path).

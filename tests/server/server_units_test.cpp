@@ -660,6 +660,9 @@ TEST(Config, ReadsSectionsAndRejectsUnknownKeys) {
   EXPECT_THROW(parse_server_config("merge: {merge_nice: 20}\n"), align::ConfigError);
   EXPECT_EQ(parse_server_config("publish: {move_nodes_per_build: 0}\n").publish.move_nodes_per_build, 0u);
   EXPECT_THROW(parse_server_config("publish: {move_nodes_per_build: -1}\n"), align::ConfigError);
+  EXPECT_DOUBLE_EQ(parse_server_config("").merge.alignment_data_hold_s, 30.0);
+  EXPECT_DOUBLE_EQ(parse_server_config("merge: {alignment_data_hold_s: 0}\n").merge.alignment_data_hold_s, 0.0);
+  EXPECT_THROW(parse_server_config("merge: {alignment_data_hold_s: -1}\n"), align::ConfigError);
 }
 
 TEST(Config, ExtraPairSettings) {
@@ -859,6 +862,53 @@ TEST(Pipeline, AKnownRobotIsRefinedOnceItsMapChangedByTheConfiguredShare) {
   ASSERT_EQ(registry_eager.status("r2"), RobotStatus::kAligned);
   every_change.process("r2", sample_of(a_bit_more, 2), false);
   EXPECT_EQ(refinements(every_change), 1u);
+}
+
+TEST(Pipeline, AlignmentDataNoAlignmentUsesIsLetGoOfAndBuiltAgainWhenNeeded) {
+  const GrownPair pair;
+  ServerConfig config;
+  config.merge.alignment_data_hold_s = 0.0;  // idle at once
+  Registry registry;
+  Pipeline pipeline(config, registry, nullptr, {});
+  pipeline.process("r1", sample_of(pair.r1, 1), false);
+  pipeline.process("r2", sample_of(pair.r2, 1), false);
+  ASSERT_EQ(registry.status("r2"), RobotStatus::kAligned);
+  for (const char* id : {"r1", "r2"}) {
+    ASSERT_TRUE(registry.get(id)->prepared) << id;
+    ASSERT_TRUE(registry.get(id)->map->has_tree()) << id;
+  }
+  GlobalMapBuilder builder(config);
+  const auto first = builder.build(registry, 1);
+  ASSERT_TRUE(first);
+  const auto map2 = registry.get("r2")->map;
+  const std::weak_ptr<const octomap::OcTree> tree2 = map2->tree();
+  const auto running = registry.get("r1")->prepared;  // an alignment still using r1's
+  ASSERT_TRUE(pipeline.alignment_data_idle());
+  pipeline.process(Pipeline::release_job(), std::nullopt, true);
+  for (const char* id : {"r1", "r2"}) {
+    EXPECT_FALSE(registry.get(id)->prepared) << id;
+    EXPECT_FALSE(registry.get(id)->map->has_tree()) << id;
+  }
+  EXPECT_TRUE(tree2.expired()) << "r2's octree is still held";
+  EXPECT_GT(running->num_points(), 0u) << "a running alignment lost its prepared map";
+  EXPECT_FALSE(pipeline.alignment_data_idle());
+  // The maps are the same maps: nothing to fuse again, no new version.
+  EXPECT_EQ(registry.get("r2")->map, map2);
+  EXPECT_FALSE(builder.build(registry, 2));
+  EXPECT_TRUE(builder.unchanged());
+  // A grown map is refined against r1's octree and clouds, built again from r1's bytes.
+  pipeline.process("r2", sample_of(pair.r2_grown, 2), false);
+  EXPECT_EQ(refinements(pipeline), 1u);
+  EXPECT_EQ(registry.status("r2"), RobotStatus::kAligned);
+  EXPECT_TRUE(registry.get("r1")->map->has_tree());
+  EXPECT_TRUE(registry.get("r1")->prepared);
+  // Data an alignment used since the cutoff is kept.
+  registry.note_alignment_use("r1", Registry::Clock::now() + std::chrono::hours(1));
+  const auto released = registry.release_alignment_data(Registry::Clock::now());
+  EXPECT_EQ(released, std::vector<std::string>{"r2"});
+  EXPECT_TRUE(registry.get("r1")->prepared);
+  EXPECT_TRUE(registry.get("r1")->map->has_tree());
+  EXPECT_FALSE(registry.get("r2")->map->has_tree());
 }
 
 TEST(GlobalMapBuilder, AGrownMapIsFusedByItsDifferenceAndEqualsAFreshBuild) {

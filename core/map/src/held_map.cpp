@@ -43,12 +43,26 @@ HeldMap::HeldMap(double resolution, std::shared_ptr<const std::vector<std::uint8
       occupied_log_odds_(default_tree().getClampingThresMaxLog()) {}
 
 std::shared_ptr<const octomap::OcTree> HeldMap::tree() const {
-  if (built_flag_.load(std::memory_order_acquire)) return tree_;
-  std::call_once(built_, [this] {
+  std::lock_guard<std::mutex> lock(tree_mutex_);
+  if (!tree_) {
     tree_ = detail::build_checked_binary_tree(resolution_, *body_);
     built_flag_.store(true, std::memory_order_release);
-  });
+  }
   return tree_;
+}
+
+bool HeldMap::release_tree() const {
+  std::shared_ptr<const octomap::OcTree> old;  // freed after the lock is let go of
+  std::lock_guard<std::mutex> lock(tree_mutex_);
+  if (!body_ || !tree_) return false;
+  old = std::move(tree_);
+  built_flag_.store(false, std::memory_order_release);
+  return true;
+}
+
+std::shared_ptr<const OccupiedLeaves> HeldMap::occupied_leaves() const {
+  std::call_once(occupied_once_, [this] { occupied_ = std::make_shared<const OccupiedLeaves>(OccupiedLeaves::of(*this)); });
+  return occupied_;
 }
 
 bool HeldMap::has_tree() const { return built_flag_.load(std::memory_order_acquire); }

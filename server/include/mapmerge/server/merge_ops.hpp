@@ -48,12 +48,6 @@ align::AlignResult align_local(const align::PreparedMap& target, const align::Pr
 /// with its quality (inliers, fitness, overlap; pivot: centre of the maps' bounding-box overlap).
 Edge make_edge(const RobotRecord& target, const RobotRecord& source, const align::AlignResult& result);
 
-/// Share of `source`'s occupied voxels (about `samples` of them, evenly strided) that land within
-/// one voxel of an occupied voxel of `target` when moved by T_target_source [0..1]; 0 at once
-/// when the maps' bounding boxes do not meet. The overlap estimate that selects extra pairs.
-double estimate_overlap(const octomap::OcTree& target, const octomap::OcTree& source,
-                        const Eigen::Matrix4d& T_target_source, std::size_t samples);
-
 /// One robot's map with its pose in the global frame.
 struct PlacedMap {
   std::string robot;                 ///< robot id (for skip reports)

@@ -55,13 +55,19 @@ class Pipeline {
   static std::string refine_job(const std::string& robot) { return robot + "#refine"; }
   /// The scheduler key of `robot`'s global-search turn.
   static std::string search_job(const std::string& robot) { return robot + "#search"; }
+  /// The scheduler key of the turn that lets go of idle alignment data (release_alignment_data).
+  static std::string release_job() { return "#release"; }
+  /// Whether some robot holds a prepared map or octree no alignment used for
+  /// merge.alignment_data_hold_s.
+  bool alignment_data_idle() const;
 
   /// `store` may be null (no persistence).
   Pipeline(const ServerConfig& config, Registry& registry, Store* store, Hooks hooks);
 
   /// One turn of `robot`: its newest map (if any arrived) and/or a retry; for refine_job(robot),
   /// the local refinement of the robot's latest map; for search_job(robot), the global search of
-  /// its latest map (if it is still unknown).
+  /// its latest map (if it is still unknown); for release_job(), lets go of the prepared maps and
+  /// octrees no alignment used for merge.alignment_data_hold_s.
   void process(const std::string& robot, std::optional<MapSample> map, bool retry);
   /// Installs a map from the store at start-up (no persistence, no alignment).
   bool restore(const MapSample& map);
@@ -93,6 +99,7 @@ class Pipeline {
   std::shared_ptr<const align::PreparedMap> prepared(const std::string& robot, bool features);
   void refine_turn(const std::string& robot);
   void search_turn(const std::string& robot);
+  void release_turn();
   /// Stores the reference and the registry's edges except those of `robot`.
   void store_edges_without(const std::string& robot);
   /// Asks for a republish and, when `joined` (the aligned group grew), a retry of every

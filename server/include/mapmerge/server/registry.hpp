@@ -87,6 +87,13 @@ class Registry {
   void set_prepared(const std::string& robot, std::uint64_t revision,
                     std::shared_ptr<const align::PreparedMap> prepared);
   void mark_tried(const std::string& robot, std::uint64_t revision, const std::string& other);
+  /// Notes that an alignment uses `robot`'s prepared map (and so its octree) at `now`.
+  void note_alignment_use(const std::string& robot, Clock::time_point now = Clock::now());
+  /// The robots whose prepared map or octree no alignment used since `cutoff`.
+  std::vector<std::string> idle_alignment_data(Clock::time_point cutoff) const;
+  /// Lets go of those robots' prepared maps and octrees (built again from the maps' bytes when
+  /// an alignment needs them; the maps themselves are unchanged); returns the robots released.
+  std::vector<std::string> release_alignment_data(Clock::time_point cutoff);
 
   /// Adds or replaces the edge between target and source.
   void put_edge(const Edge& edge);
@@ -138,6 +145,7 @@ class Registry {
   std::map<std::string, Seen> seen_;
   double conflict_hold_s_ = 30.0;
   std::map<std::string, Presence> presence_;
+  std::map<std::string, Clock::time_point> alignment_use_;  ///< last use of a robot's prepared map
   std::map<std::string, std::shared_ptr<RobotRecord>> records_;
   std::map<std::pair<std::string, std::string>, Edge> edges_;
   std::string reference_;

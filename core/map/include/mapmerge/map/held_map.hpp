@@ -16,6 +16,8 @@
 
 #include <octomap/OcTree.h>
 
+#include "mapmerge/map/occupied_leaves.hpp"
+
 namespace mapmerge {
 
 class HeldMap;
@@ -29,8 +31,8 @@ std::shared_ptr<const HeldMap> held_checked_body(double resolution,
 }  // namespace detail
 
 /// An immutable map: an OcTree, its validated binary body (OcTree::writeBinaryData's bytes), or
-/// both. tree() builds the octree from the body on first use, once, and keeps it; safe to call
-/// from several threads.
+/// both. tree() builds the octree from the body on first use and keeps it until release_tree();
+/// safe to call from several threads.
 class HeldMap {
  public:
   /// A decoded map, with the binary body it was read from when known (null for `.ot` bodies).
@@ -49,6 +51,13 @@ class HeldMap {
   std::shared_ptr<const octomap::OcTree> tree() const;
   /// Whether tree() has been built (a test of laziness; the answer may be stale at once).
   bool has_tree() const;
+  /// Lets go of the octree built from the body (~57 B a node); the next tree() builds it again,
+  /// and whoever holds the old one keeps it. A map without a binary body keeps its tree. Returns
+  /// whether a tree was let go of. The map's content is unchanged: it stays the same map.
+  bool release_tree() const;
+  /// The map's occupied leaves, read off the body on the first call (the tree is not built) and
+  /// kept: what an overlap estimate asks of a map, at ~8 B per occupied leaf.
+  std::shared_ptr<const OccupiedLeaves> occupied_leaves() const;
 
  private:
   friend std::shared_ptr<const HeldMap> detail::held_checked_body(double, std::shared_ptr<const std::vector<std::uint8_t>>,
@@ -60,9 +69,11 @@ class HeldMap {
   std::shared_ptr<const std::vector<std::uint8_t>> body_;
   float free_log_odds_;
   float occupied_log_odds_;
-  mutable std::once_flag built_;
+  mutable std::mutex tree_mutex_;  ///< guards tree_ (held while a tree is built)
   mutable std::shared_ptr<const octomap::OcTree> tree_;
   mutable std::atomic<bool> built_flag_{false};
+  mutable std::once_flag occupied_once_;
+  mutable std::shared_ptr<const OccupiedLeaves> occupied_;
 };
 
 }  // namespace mapmerge

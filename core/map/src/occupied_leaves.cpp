@@ -1,0 +1,137 @@
+#include "mapmerge/map/occupied_leaves.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+#include <Eigen/Geometry>
+#include <octomap/OcTree.h>
+
+#include "mapmerge/map/held_map.hpp"
+#include "octree_internals.hpp"
+#include "tree_scan.hpp"
+
+namespace mapmerge {
+namespace {
+
+using detail::kTreeDepth;
+constexpr std::int64_t kCentreKey = 1 << (kTreeDepth - 1);  ///< key of the cell at the origin
+
+std::uint64_t pack(std::uint64_t x, std::uint64_t y, std::uint64_t z) { return x | (y << 16) | (z << 32); }
+
+/// The corner keys of a leaf `depth` levels below the root whose key is `key`.
+std::uint64_t mask_to_depth(std::uint64_t packed, unsigned depth) {
+  const std::uint64_t low = (std::uint64_t{1} << (kTreeDepth - depth)) - 1;
+  return packed & ~(low | (low << 16) | (low << 32));
+}
+
+}  // namespace
+
+/// Walks a validated binary body's records (depth <= 16, so the recursion is bounded).
+class OccupiedLeavesWalk {
+ public:
+  explicit OccupiedLeavesWalk(OccupiedLeaves& out) : out_(out) {}
+  void visit(const std::vector<std::uint8_t>& body, std::size_t& pos, unsigned depth, std::uint32_t x,
+             std::uint32_t y, std::uint32_t z) {
+    const std::uint8_t* record = body.data() + pos;
+    pos += 2;
+    const std::uint32_t half = (1U << kTreeDepth) >> (depth + 1);
+    for (unsigned i = 0; i < 8; ++i) {
+      const unsigned code = detail::binary_child_code(record, i);
+      const std::uint32_t cx = x + ((i & 1U) != 0 ? half : 0), cy = y + ((i & 2U) != 0 ? half : 0),
+                          cz = z + ((i & 4U) != 0 ? half : 0);
+      if (code == 3) {
+        visit(body, pos, depth + 1, cx, cy, cz);
+      } else if (code == 2) {
+        out_.add(depth + 1, cx, cy, cz);
+      }
+    }
+  }
+
+ private:
+  OccupiedLeaves& out_;
+};
+
+void OccupiedLeaves::add(unsigned depth, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
+  by_depth_[depth].push_back(pack(x, y, z));
+}
+
+void OccupiedLeaves::finish() {
+  size_ = 0;
+  for (auto& keys : by_depth_) {
+    std::sort(keys.begin(), keys.end());
+    keys.shrink_to_fit();
+    size_ += keys.size();
+  }
+}
+
+OccupiedLeaves OccupiedLeaves::of(const HeldMap& map) {
+  const auto& body = map.binary_body();
+  if (!body) return of(*map.tree());
+  OccupiedLeaves out;
+  out.resolution_ = map.resolution();
+  std::size_t pos = 0;
+  if (body->size() >= 2) OccupiedLeavesWalk(out).visit(*body, pos, 0, 0, 0, 0);
+  out.finish();
+  return out;
+}
+
+OccupiedLeaves OccupiedLeaves::of(const octomap::OcTree& tree) {
+  OccupiedLeaves out;
+  out.resolution_ = tree.getResolution();
+  for (auto it = tree.begin_leafs(), end = tree.end_leafs(); it != end; ++it) {
+    if (!tree.isNodeOccupied(*it)) continue;
+    const unsigned depth = it.getDepth();
+    const octomap::OcTreeKey k = it.getKey();
+    out.by_depth_[depth].push_back(mask_to_depth(pack(k[0], k[1], k[2]), depth));
+  }
+  out.finish();
+  return out;
+}
+
+bool OccupiedLeaves::occupied(const Eigen::Vector3d& p) const {
+  std::uint64_t key[3];
+  for (int a = 0; a < 3; ++a) {
+    const double k = std::floor(p[a] / resolution_) + static_cast<double>(kCentreKey);
+    if (!(k >= 0.0 && k < static_cast<double>(1U << kTreeDepth))) return false;
+    key[a] = static_cast<std::uint64_t>(k);
+  }
+  const std::uint64_t packed = pack(key[0], key[1], key[2]);
+  for (unsigned d = 0; d < kLevels; ++d) {
+    const auto& keys = by_depth_[d];
+    if (!keys.empty() && std::binary_search(keys.begin(), keys.end(), mask_to_depth(packed, d))) return true;
+  }
+  return false;
+}
+
+Eigen::Vector3d OccupiedLeaves::centre(std::size_t i) const {
+  unsigned d = 0;
+  while (i >= by_depth_[d].size()) i -= by_depth_[d++].size();  // i < size(): ends below kLevels
+  const std::uint64_t k = by_depth_[d][i];
+  const double half = static_cast<double>((1U << kTreeDepth) >> d) / 2.0;
+  Eigen::Vector3d c;
+  for (int a = 0; a < 3; ++a) {
+    const auto key = static_cast<double>((k >> (16 * a)) & 0xFFFFU);
+    c[a] = (key - static_cast<double>(kCentreKey) + half) * resolution_;
+  }
+  return c;
+}
+
+double estimate_overlap(const OccupiedLeaves& target, const OccupiedLeaves& source,
+                        const Eigen::Matrix4d& T_target_source, std::size_t samples) {
+  if (target.size() == 0 || source.size() == 0) return 0.0;
+  const std::size_t stride = std::max<std::size_t>(1, source.size() / std::max<std::size_t>(1, samples));
+  const double r = target.resolution();
+  std::size_t seen = 0, hit = 0;
+  for (std::size_t i = 0; i < source.size(); i += stride) {
+    const Eigen::Vector3d p = (T_target_source * source.centre(i).homogeneous()).head<3>();
+    ++seen;
+    bool found = false;  // an occupied target voxel within one voxel
+    for (int dx = -1; dx <= 1 && !found; ++dx)
+      for (int dy = -1; dy <= 1 && !found; ++dy)
+        for (int dz = -1; dz <= 1 && !found; ++dz) found = target.occupied(p + Eigen::Vector3d(dx, dy, dz) * r);
+    hit += found ? 1 : 0;
+  }
+  return static_cast<double>(hit) / static_cast<double>(seen);
+}
+
+}  // namespace mapmerge
