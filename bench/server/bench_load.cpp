@@ -33,6 +33,7 @@ struct Options {
   int variants = 4;           ///< maps per robot, published in turn (each a change)
   double sample_s = 10;       ///< RSS / queue sampling period [s]
   double drain_s = 300;       ///< after the robots stop: waiting for every final map [s]
+  double idle_s = 45;         ///< then the fleet stays silent this long before RSS is read again [s]
   int threads = 2;            ///< server merge threads
   int domain = 101;           ///< outside the CTest pool
 };
@@ -42,7 +43,7 @@ double secs(Clock::time_point t0) { return std::chrono::duration<double>(Clock::
 /// Per robot, `variants` encoded maps: its window of the world, 85..100 % of its length, in
 /// its own random frame (robot 1's frame is the world's).
 std::vector<std::vector<std::vector<std::uint8_t>>> make_fleet(const Options& o, const octomap::OcTree& world,
-                                                              double& mean_kb) {
+                                                              double& mean_kb, double& mean_tree_mb) {
   double x0, y0, z0, x1, y1, z1;
   world.getMetricMin(x0, y0, z0);
   world.getMetricMax(x1, y1, z1);
@@ -51,7 +52,7 @@ std::vector<std::vector<std::vector<std::uint8_t>>> make_fleet(const Options& o,
   std::mt19937 rng(16);
   std::uniform_real_distribution<double> yaw(-180, 180), off(-5, 5);
   std::vector<std::vector<std::vector<std::uint8_t>>> fleet;
-  double bytes = 0;
+  double bytes = 0, tree_bytes = 0;
   for (int i = 0; i < o.robots; ++i) {
     const Eigen::Isometry3d T = i == 0 ? Eigen::Isometry3d::Identity()
                                        : mapmerge::make_transform(off(rng), off(rng), 0, 0, 0, yaw(rng));
@@ -62,9 +63,11 @@ std::vector<std::vector<std::vector<std::uint8_t>>> make_fleet(const Options& o,
       const auto tree = mapmerge::crop_and_transform(world, box, T);
       fleet.back().push_back(mapmerge::encode_map(*tree, mapmerge::Encoding::kOctomapBt));
       bytes += static_cast<double>(fleet.back().back().size());
+      tree_bytes += static_cast<double>(tree->memoryUsage());
     }
   }
   mean_kb = bytes / (o.robots * o.variants) / 1024.0;
+  mean_tree_mb = tree_bytes / (o.robots * o.variants) / (1024.0 * 1024.0);
   return fleet;
 }
 
@@ -119,8 +122,8 @@ void print_sample(double t, const mapmerge::bench::ProcStats& p, const mt::Recei
 
 int run(const Options& o) {
   const auto world = mt::load_data_map(o.map);
-  double mean_kb = 0;
-  const auto maps = make_fleet(o, *world, mean_kb);
+  double mean_kb = 0, mean_tree_mb = 0;
+  const auto maps = make_fleet(o, *world, mean_kb, mean_tree_mb);
   const std::string dir = mt::temp_dir("bench_load");
   std::ofstream(dir + "/load.yaml") << "merge: {threads: " << o.threads << "}\n";
   mt::ServerProcess server({"--domain", std::to_string(o.domain), "--profile", "local", "--state-dir", dir + "/state",
@@ -188,6 +191,10 @@ int run(const Options& o) {
     auto it = g.contributor_sequence.find(ids[static_cast<std::size_t>(i)]);
     final_fused += it != g.contributor_sequence.end() && it->second == last[static_cast<std::size_t>(i)] ? 1 : 0;
   }
+  // A fleet that stopped mapping: what the server holds once its alignment data has gone idle.
+  std::this_thread::sleep_for(std::chrono::duration<double>(o.idle_s));
+  const auto idle = mapmerge::bench::proc_stats(server.pid());
+  print_sample(secs(t0), idle, op.status(), aligned_count(op), o.robots);
   const auto lat = latencies.sorted();
   const auto quarter = [&](double q) { return rss.empty() ? 0.0 : rss[std::min(rss.size() - 1, static_cast<std::size_t>(q * rss.size()))]; };
   std::printf("\n| figure | value |\n|---|---|\n");
@@ -201,7 +208,12 @@ int run(const Options& o) {
               percentile(lat, 0.5), percentile(lat, 0.99), lat.empty() ? -1.0 : lat.back(), lat.size());
   std::printf("| RSS at 25/50/75/100 %% of the run | %.0f / %.0f / %.0f / %.0f MiB |\n", quarter(0.25), quarter(0.5),
               quarter(0.75), quarter(0.999));
-  std::printf("| peak RSS (VmHWM) | %.0f MiB |\n", p.hwm_mb);
+  std::printf("| peak RSS (VmHWM) while publishing and draining / overall | %.0f / %.0f MiB (%.0f / %.0f MiB per robot) |\n",
+              p.hwm_mb, idle.hwm_mb, p.hwm_mb / o.robots, idle.hwm_mb / o.robots);
+  std::printf("| RSS after %.0f s without updates | %.0f MiB (%.0f MiB per robot) |\n", o.idle_s, idle.rss_mb,
+              idle.rss_mb / o.robots);
+  std::printf("| a robot's map: payload / its OcTree in memory (memoryUsage) | %.0f KiB / %.1f MiB |\n", mean_kb,
+              mean_tree_mb);
   std::printf("| server CPU | %.0f s (%.2f cores) |\n", p.cpu_s, p.cpu_s / secs(t0));
   std::printf("| robots aligned | %d / %d |\n", aligned_count(op), o.robots);
   std::printf("| final maps fused | %d / %d, %.1f s after the robots stopped%s |\n", final_fused, o.robots, drain,
@@ -225,6 +237,7 @@ int main(int argc, char** argv) {
   app.add_option("--variants", o.variants, "maps per robot published in turn")->check(CLI::Range(1, 16));
   app.add_option("--sample", o.sample_s, "RSS sampling period [s]")->check(CLI::PositiveNumber);
   app.add_option("--drain", o.drain_s, "wait for the final maps after the robots stop [s]");
+  app.add_option("--idle", o.idle_s, "silence after the drain before RSS is read again [s]")->check(CLI::NonNegativeNumber);
   app.add_option("--threads", o.threads, "server merge threads")->check(CLI::Range(1, 64));
   app.add_option("--domain", o.domain, "DDS domain")->check(CLI::Range(0, 101));
   CLI11_PARSE(app, argc, argv);
