@@ -3,6 +3,7 @@
 
 #include <cmath>
 #include <cstdio>
+#include <random>
 
 #include <Eigen/Geometry>
 
@@ -193,6 +194,57 @@ TEST(Fusion, QuarterTurnsAndWholeVoxelShiftsAreExact) {
   EXPECT_DOUBLE_EQ(occupied_share(target, occ, T), 1.0);
   EXPECT_EQ(occupied_centres(target).size(), occ.size());
   EXPECT_EQ(voxel_count(target, false), voxel_count(*source, false));  // free space too
+}
+
+/// Every target voxel gets the value of the source leaf its centre lies in (half-open cubes),
+/// checked voxel by voxel against the source for leaves of 1 to 16 voxels under random turns.
+TEST(Fusion, EachTargetVoxelTakesTheSourceLeafItsCentreLiesInUnderAnyTurn) {
+  const double res = 0.1;
+  octomap::OcTree source(res);
+  const auto put_block = [&](int x, int y, int z, int n, float v) {  // n^3 voxels at an aligned key
+    for (int i = 0; i < n; ++i)
+      for (int j = 0; j < n; ++j)
+        for (int k = 0; k < n; ++k) {
+          source.setNodeValue(octomap::OcTreeKey(32768 + x + i, 32768 + y + j, 32768 + z + k), v);
+        }
+  };
+  put_block(0, 0, 0, 16, 1.5F);
+  put_block(16, 0, 0, 8, -1.0F);
+  put_block(16, 8, 0, 4, 2.5F);
+  put_block(-4, -4, -4, 2, 0.7F);
+  put_block(-1, 5, 3, 1, 3.0F);
+  put_block(-2, 5, 3, 1, -0.4F);
+  source.prune();
+  ASSERT_LT(source.getNumLeafNodes(), 100u);  // big pruned cubes, not voxels
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> angle(-M_PI, M_PI), shift(-0.37, 0.37);
+  FuseConfig config;
+  for (int trial = 0; trial < 6; ++trial) {
+    const Eigen::Vector3d axis = Eigen::Vector3d(angle(rng), angle(rng), angle(rng)).normalized();
+    const Eigen::Matrix3d R = trial == 0 ? Eigen::Matrix3d(Eigen::AngleAxisd(angle(rng), Eigen::Vector3d::UnitZ()))
+                                         : Eigen::Matrix3d(Eigen::AngleAxisd(angle(rng), axis));
+    Eigen::Matrix4d T = Eigen::Matrix4d::Identity();
+    T.topLeftCorner<3, 3>() = R;
+    T.topRightCorner<3, 1>() = Eigen::Vector3d(shift(rng), shift(rng), shift(rng));
+    octomap::OcTree target(res);
+    ASSERT_TRUE(fuse_into(target, source, T, config).ok);
+    const Eigen::Matrix4d T_inv = T.inverse();
+    std::size_t known = 0;
+    for (int x = -50; x < 50; ++x)
+      for (int y = -50; y < 50; ++y)
+        for (int z = -50; z < 50; ++z) {
+          const octomap::OcTreeKey key(32768 + x, 32768 + y, 32768 + z);
+          const octomap::point3d c = target.keyToCoord(key);
+          const Eigen::Vector3d q = (T_inv * Eigen::Vector4d(c.x(), c.y(), c.z(), 1.0)).head<3>();
+          const octomap::OcTreeNode* want = source.search(q.x(), q.y(), q.z());
+          const octomap::OcTreeNode* got = target.search(key);
+          ASSERT_EQ(got != nullptr, want != nullptr) << "trial " << trial << " voxel " << x << " " << y << " " << z;
+          if (want == nullptr) continue;
+          ++known;
+          ASSERT_FLOAT_EQ(got->getLogOdds(), want->getLogOdds()) << "trial " << trial << " voxel " << x << " " << y << " " << z;
+        }
+    EXPECT_GT(known, 4500u) << "trial " << trial;  // ~16^3 + 8^3 + ... voxels' worth of space
+  }
 }
 
 TEST(Fusion, CoarserSourceIntoFinerTarget) {
