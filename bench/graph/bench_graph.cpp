@@ -263,7 +263,7 @@ RealFleet real_fleet(const octomap::OcTree& world, int n, double length, double 
     f.T_robot_world.emplace_back(T);
     const Eigen::AlignedBox3d box(Eigen::Vector3d(x0 + i * step, -8, -1), Eigen::Vector3d(x0 + i * step + length, 8, 4));
     maps.push_back(mapmerge::crop_and_transform(world, box, Eigen::Isometry3d(T)));
-    prepared.push_back(ma::prepare_map(maps.back(), config));
+    prepared.push_back(ma::prepare_map(*maps.back(), config));
   }
   g.set_reference(f.ids[0]);
   for (const auto& id : f.ids) g.add_robot(id);

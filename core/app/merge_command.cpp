@@ -111,8 +111,7 @@ int run_merge(const MergeOptions& o) {
   }
   align::AlignResult result;
   try {
-    result = align::align_maps(std::shared_ptr<const octomap::OcTree>(target),
-                               std::shared_ptr<const octomap::OcTree>(source), config);
+    result = align::align_maps(*target, *source, config);
   } catch (const std::invalid_argument& e) {
     std::cerr << "mapmerge merge: " << e.what() << "\n";
     return 1;

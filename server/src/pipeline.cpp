@@ -207,7 +207,14 @@ std::shared_ptr<const align::PreparedMap> Pipeline::prepared(const std::string& 
   if (rec->prepared && (!features || rec->prepared->has_features())) return rec->prepared;
   std::string error;
   const auto t0 = std::chrono::steady_clock::now();
-  auto p = prepare(rec->map->tree(), config_.align, features, error);  // builds the tree
+  std::shared_ptr<const align::PreparedMap> p;
+  {
+    const auto tree = rec->map->tree();  // built from the map's bytes
+    p = prepare(*tree, config_.align, features, error);
+  }
+  // The prepared map keeps no reference to the octree (~57 B a node) and nothing else here needs
+  // it: it exists while a map is prepared only.
+  rec->map->release_tree();
   spdlog::debug("robot {}: map prepared ({}) in {:.0f} ms", robot, features ? "features" : "refine only",
                 seconds_since(t0) * 1e3);
   if (!p) {

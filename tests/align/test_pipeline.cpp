@@ -57,7 +57,7 @@ TEST(AlignPipeline, RecoversThePapersPair) {
   // T_R = (12, 6, 0.5, 5°, 5°, 60°); overlap about 24 %.
   const Pair p = make_pair(fr079(), box(-10, -10, 0, 2, 10, 2), box(-2, -10, 0, 10, 10, 2),
                            mapmerge::paper_transform(12, 6, 0.5, 5, 5, 60));
-  const ma::AlignResult r = ma::align_maps(p.target, p.source, ma::AlignConfig{});
+  const ma::AlignResult r = ma::align_maps(*p.target, *p.source, ma::AlignConfig{});
   ASSERT_TRUE(r.accepted) << r.reason;
   const Errors e = errors(r.T_target_source, p.T_true);
   EXPECT_LT(e.rot_deg, 1.0);
@@ -72,7 +72,7 @@ TEST(AlignPipeline, RecoversLargeYawOnACoarserMap) {
   const auto tree = load("geb079.bt");  // 8 cm
   const Pair p = make_pair(*tree, box(-9, -9, -1, 12, 9, 4), box(6, -9, -1, 31, 9, 4),
                            mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155));
-  const ma::AlignResult r = ma::align_maps(p.target, p.source, ma::AlignConfig{});
+  const ma::AlignResult r = ma::align_maps(*p.target, *p.source, ma::AlignConfig{});
   ASSERT_TRUE(r.accepted) << r.reason;
   const Errors e = errors(r.T_target_source, p.T_true);
   EXPECT_LT(e.rot_deg, 1.0);
@@ -85,7 +85,7 @@ TEST(AlignPipeline, SameDefaultsRecoverAnOutdoorScaleMap) {
   ASSERT_NEAR(coarse->getResolution(), 0.2, 1e-9);
   const Pair p = make_pair(*coarse, box(-20, -10, -1, 6, 10, 4), box(-4, -10, -1, 24, 10, 4),
                            mapmerge::paper_transform(6, -3, 0.2, 2, -3, 120));
-  const ma::AlignResult r = ma::align_maps(p.target, p.source, ma::AlignConfig{});
+  const ma::AlignResult r = ma::align_maps(*p.target, *p.source, ma::AlignConfig{});
   ASSERT_TRUE(r.accepted) << r.reason;
   const Errors e = errors(r.T_target_source, p.T_true);
   EXPECT_LT(e.rot_deg, 1.0);
@@ -98,7 +98,7 @@ TEST(AlignPipeline, RecoversARoomWithSubmodels) {
                            mapmerge::paper_transform(3, -2, 0, 2, -2, -100));
   ma::AlignConfig c;
   c.submodels.enabled = true;
-  const ma::AlignResult r = ma::align_maps(p.target, p.source, c);
+  const ma::AlignResult r = ma::align_maps(*p.target, *p.source, c);
   ASSERT_TRUE(r.accepted) << r.reason;
   const Errors e = errors(r.T_target_source, p.T_true);
   EXPECT_LT(e.rot_deg, 1.0);
@@ -110,7 +110,7 @@ TEST(AlignPipeline, DisjointPartsOfTheSameCorridorAreNotAccepted) {
   // Two stretches of the same repetitive corridor with no common voxel.
   const Pair p = make_pair(fr079(), box(-10, -10, -1, 2, 10, 3), box(8, -10, -1, 20, 10, 3),
                            mapmerge::paper_transform(5, 5, 0, 0, 0, 90));
-  const ma::AlignResult r = ma::align_maps(p.target, p.source, ma::AlignConfig{});
+  const ma::AlignResult r = ma::align_maps(*p.target, *p.source, ma::AlignConfig{});
   EXPECT_FALSE(r.accepted) << "accepted a transform between disjoint maps";
   EXPECT_FALSE(r.reason.empty());
   EXPECT_TRUE(r.T_target_source.isIdentity());
@@ -120,7 +120,7 @@ TEST(AlignPipeline, DifferentBuildingsAreNotAccepted) {
   const auto room = load("fr_078_tidyup.bt");
   std::shared_ptr<const octomap::OcTree> corridor =
       mapmerge::crop_and_transform(fr079(), box(-10, -10, -1, 5, 10, 3), Eigen::Isometry3d::Identity());
-  const ma::AlignResult r = ma::align_maps(room, corridor,
+  const ma::AlignResult r = ma::align_maps(*room, *corridor,
                                            ma::AlignConfig{});
   EXPECT_FALSE(r.accepted);
 }
@@ -129,8 +129,8 @@ TEST(AlignPipeline, RefineFromAKnownTransformAndValidate) {
   const Pair p = make_pair(fr079(), box(-10, -10, 0, 2, 10, 2), box(-4, -10, 0, 8, 10, 2),
                            mapmerge::paper_transform(-3, 2, 0.2, 1, -1, -35));
   const ma::AlignConfig c;
-  const ma::PreparedMap target = ma::prepare_map(p.target, c);
-  const ma::PreparedMap source = ma::prepare_map(p.source, c);
+  const ma::PreparedMap target = ma::prepare_map(*p.target, c);
+  const ma::PreparedMap source = ma::prepare_map(*p.source, c);
   // Start 0.25 m and 3 degrees off (a robot's map grew or drifted).
   const Eigen::Matrix4d T0 = mapmerge::paper_transform(0.2, -0.15, 0.0, 0, 0, 3) * p.T_true;
   const ma::AlignResult r = ma::refine(target, source, T0, c);
@@ -156,10 +156,10 @@ TEST(AlignPipeline, RefineOnlyPreparationRefinesAlikeAndIsRefusedByTheGlobalSear
   const Pair p = make_pair(fr079(), box(-10, -10, 0, 2, 10, 2), box(-4, -10, 0, 8, 10, 2),
                            mapmerge::paper_transform(-3, 2, 0.2, 1, -1, -35));
   const ma::AlignConfig c;
-  const ma::PreparedMap full_target = ma::prepare_map(p.target, c);
-  const ma::PreparedMap full_source = ma::prepare_map(p.source, c);
-  const ma::PreparedMap target = ma::prepare_for_refine(p.target, c);
-  const ma::PreparedMap source = ma::prepare_for_refine(p.source, c);
+  const ma::PreparedMap full_target = ma::prepare_map(*p.target, c);
+  const ma::PreparedMap full_source = ma::prepare_map(*p.source, c);
+  const ma::PreparedMap target = ma::prepare_for_refine(*p.target, c);
+  const ma::PreparedMap source = ma::prepare_for_refine(*p.source, c);
   EXPECT_TRUE(full_source.has_features());
   EXPECT_FALSE(source.has_features());
   EXPECT_EQ(source.num_keypoints(), 0u);

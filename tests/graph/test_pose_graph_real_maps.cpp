@@ -47,7 +47,7 @@ const std::vector<RealEdge>& real_edges() {
     const FiveRobots& f = FiveRobots::get();
     const ma::AlignConfig config;
     std::vector<ma::PreparedMap> prepared;
-    for (const auto& m : f.maps) prepared.push_back(ma::prepare_map(m, config));
+    for (const auto& m : f.maps) prepared.push_back(ma::prepare_map(*m, config));
     std::vector<RealEdge> out;
     for (const auto& [t, s] : f.overlapping) {
       ma::AlignResult r = ma::align(prepared[t], prepared[s], config);

@@ -506,30 +506,35 @@ TEST(Bounds, LeafBoundsAreOctomapsExtentOnRealMapsAndTheirParts) {
 }
 
 
-/// The occupied leaves read off a map's bytes against its octree, voxel by voxel.
-void expect_occupied_leaves_match(const octomap::OcTree& tree, const std::string& what) {
+/// The occupied and the free leaves read off a map's bytes against its octree, voxel by voxel.
+void expect_leaf_sets_match(const octomap::OcTree& tree, const std::string& what) {
   const CheckedMap held = check_map(encode_map(tree, Encoding::kOctomapBt), "octomap-bt", DecodeLimits{});
   ASSERT_TRUE(held.map) << what << ": " << held.reason;
   const auto leaves = held.map->occupied_leaves();
+  const LeafSet free_leaves = LeafSet::of(*held.map, LeafState::kFree);
   EXPECT_FALSE(held.map->has_tree()) << what;
-  const OccupiedLeaves from_tree = OccupiedLeaves::of(tree);
-  std::size_t occupied = 0;
-  for (auto it = tree.begin_leafs(), end = tree.end_leafs(); it != end; ++it) occupied += tree.isNodeOccupied(*it);
-  ASSERT_EQ(leaves->size(), occupied) << what;
-  ASSERT_EQ(from_tree.size(), occupied) << what;
-  // Every leaf centre read back is an occupied leaf's centre of the tree, in the same order for
-  // both readings.
-  const double r = tree.getResolution();
-  for (std::size_t i = 0; i < leaves->size(); i += 7) {
-    const Eigen::Vector3d c = leaves->centre(i);
-    EXPECT_TRUE(c.isApprox(from_tree.centre(i), 1e-12)) << what << " leaf " << i;
-    const octomap::OcTreeNode* n = tree.search(c.x(), c.y(), c.z());
-    ASSERT_NE(n, nullptr) << what << " leaf " << i;
-    EXPECT_TRUE(tree.isNodeOccupied(n)) << what << " leaf " << i;
+  for (const bool occupied : {true, false}) {
+    const LeafSet& from_body = occupied ? *leaves : free_leaves;
+    const LeafSet from_tree = LeafSet::of(tree, occupied ? LeafState::kOccupied : LeafState::kFree);
+    const std::string kind = what + (occupied ? " occupied" : " free");
+    std::size_t count = 0;
+    for (auto it = tree.begin_leafs(), end = tree.end_leafs(); it != end; ++it) count += tree.isNodeOccupied(*it) == occupied;
+    ASSERT_EQ(from_body.size(), count) << kind;
+    ASSERT_EQ(from_tree.size(), count) << kind;
+    // Every leaf centre read back is the centre of a leaf of the tree in that state, in the same
+    // order for both readings.
+    for (std::size_t i = 0; i < from_body.size(); i += 7) {
+      const Eigen::Vector3d c = from_body.centre(i);
+      EXPECT_TRUE(c.isApprox(from_tree.centre(i), 1e-12)) << kind << " leaf " << i;
+      const octomap::OcTreeNode* n = tree.search(c.x(), c.y(), c.z());
+      ASSERT_NE(n, nullptr) << kind << " leaf " << i;
+      EXPECT_EQ(tree.isNodeOccupied(n), occupied) << kind << " leaf " << i;
+    }
   }
-  // Points anywhere in the box, half a voxel apart: occupied exactly where the tree says so.
+  // Points anywhere in the box: occupied, free or unknown exactly where the tree says so.
+  const double r = tree.getResolution();
   const Eigen::AlignedBox3d box = leaf_bounds(tree);
-  std::size_t checked = 0, hits = 0;
+  std::size_t checked = 0, hits = 0, free_hits = 0;
   const Eigen::Vector3d step = (box.max() - box.min()) / 40.0;
   for (int i = 0; i <= 40; ++i)
     for (int j = 0; j <= 40; ++j)
@@ -538,41 +543,50 @@ void expect_occupied_leaves_match(const octomap::OcTree& tree, const std::string
                                   Eigen::Vector3d::Constant(0.3 * r);
         const octomap::OcTreeNode* n = tree.search(p.x(), p.y(), p.z());
         const bool in_tree = n != nullptr && tree.isNodeOccupied(n);
-        ASSERT_EQ(leaves->occupied(p), in_tree) << what << " at " << p.transpose();
+        const bool free_in_tree = n != nullptr && !tree.isNodeOccupied(n);
+        ASSERT_EQ(leaves->contains(p), in_tree) << what << " at " << p.transpose();
+        ASSERT_EQ(free_leaves.contains(p), free_in_tree) << what << " at " << p.transpose();
         ++checked;
         hits += in_tree;
+        free_hits += free_in_tree;
       }
   EXPECT_GT(checked, 60000u);
   EXPECT_GT(hits, 0u) << what;
-  EXPECT_FALSE(leaves->occupied(Eigen::Vector3d(1e6, 0, 0))) << what;  // off the key range
+  EXPECT_GT(free_hits, 0u) << what;
+  EXPECT_FALSE(leaves->contains(Eigen::Vector3d(1e6, 0, 0))) << what;  // off the key range
 }
 
-TEST(OccupiedLeaves, ReadOffTheBytesTheyAreTheTreesOccupiedLeavesAndTellOccupancyAsItDoes) {
+TEST(LeafSet, ReadOffTheBytesTheyAreTheTreesLeavesAndTellOccupancyAsItDoes) {
   for (const char* name : kMaps) {
     const auto tree = read_octree_file(test::data_path(name));
-    expect_occupied_leaves_match(*tree, name);
+    expect_leaf_sets_match(*tree, name);
     const auto part = crop_and_transform(*tree, Eigen::AlignedBox3d(Eigen::Vector3d(-3, -2, -1), Eigen::Vector3d(4, 2.5, 1.5)),
                                          Eigen::Isometry3d(Eigen::Translation3d(-7.3, 11.1, 0.4)));
     part->prune();
-    expect_occupied_leaves_match(*part, std::string(name) + " part");
+    expect_leaf_sets_match(*part, std::string(name) + " part");
   }
   octomap::OcTree block(0.1);  // one pruned occupied leaf of 8x8x8 voxels, and a lone voxel
   for (int x = 0; x < 8; ++x)
     for (int y = 0; y < 8; ++y)
       for (int z = 0; z < 8; ++z) block.updateNode(octomap::OcTreeKey(32768 + x, 32760 + y, 32768 + z), true);
   block.updateNode(octomap::OcTreeKey(32700, 32800, 32790), true);
+  for (int x = 0; x < 8; ++x)  // and 8x8x8 free voxels beside it
+    for (int y = 0; y < 8; ++y)
+      for (int z = 0; z < 8; ++z) block.updateNode(octomap::OcTreeKey(32776 + x, 32760 + y, 32768 + z), false);
   block.prune();
-  expect_occupied_leaves_match(block, "block");
-  const OccupiedLeaves leaves = OccupiedLeaves::of(block);
+  expect_leaf_sets_match(block, "block");
+  const LeafSet leaves = LeafSet::of(block, LeafState::kOccupied);
   EXPECT_EQ(leaves.size(), 2u);
-  EXPECT_TRUE(leaves.occupied(Eigen::Vector3d(0.05, -0.75, 0.75)));
-  EXPECT_FALSE(leaves.occupied(Eigen::Vector3d(0.85, -0.75, 0.75)));
-  EXPECT_EQ(OccupiedLeaves::of(octomap::OcTree(0.05)).size(), 0u);
+  EXPECT_TRUE(leaves.contains(Eigen::Vector3d(0.05, -0.75, 0.75)));
+  EXPECT_FALSE(leaves.contains(Eigen::Vector3d(0.85, -0.75, 0.75)));
+  EXPECT_TRUE(LeafSet::of(block, LeafState::kFree).contains(Eigen::Vector3d(0.85, -0.75, 0.75)));
+  EXPECT_EQ(LeafSet::of(block, LeafState::kFree).size(), 1u);
+  EXPECT_EQ(LeafSet::of(octomap::OcTree(0.05), LeafState::kOccupied).size(), 0u);
 }
 
-TEST(OccupiedLeaves, OverlapIsFullOnItselfNoneFarAwayAndFollowsTheTransform) {
+TEST(LeafSet, OverlapIsFullOnItselfNoneFarAwayAndFollowsTheTransform) {
   const auto tree = read_octree_file(test::data_path("geb079.bt"));
-  const OccupiedLeaves whole = OccupiedLeaves::of(*tree);
+  const LeafSet whole = LeafSet::of(*tree, LeafState::kOccupied);
   Eigen::Matrix4d T = Eigen::Matrix4d::Identity();
   EXPECT_DOUBLE_EQ(estimate_overlap(whole, whole, T, 1000), 1.0);
   T(0, 3) = 500.0;
@@ -581,11 +595,11 @@ TEST(OccupiedLeaves, OverlapIsFullOnItselfNoneFarAwayAndFollowsTheTransform) {
   // mostly does not.
   const Eigen::Isometry3d moved(Eigen::Translation3d(3.1, -2.2, 0.0) * Eigen::AngleAxisd(0.7, Eigen::Vector3d::UnitZ()));
   const auto part = crop_and_transform(*tree, Eigen::AlignedBox3d(Eigen::Vector3d(-5, -5, -2), Eigen::Vector3d(5, 5, 3)), moved);
-  const OccupiedLeaves p = OccupiedLeaves::of(*part);
+  const LeafSet p = LeafSet::of(*part, LeafState::kOccupied);
   ASSERT_GT(p.size(), 1000u);
   EXPECT_GT(estimate_overlap(whole, p, moved.inverse().matrix(), 1000), 0.9);
   EXPECT_LT(estimate_overlap(whole, p, Eigen::Matrix4d::Identity(), 1000), 0.5);
-  EXPECT_EQ(estimate_overlap(whole, OccupiedLeaves::of(octomap::OcTree(0.08)), T, 1000), 0.0);
+  EXPECT_EQ(estimate_overlap(whole, LeafSet::of(octomap::OcTree(0.08), LeafState::kOccupied), T, 1000), 0.0);
 }
 
 }  // namespace

@@ -199,7 +199,7 @@ TEST(Registry, RealFleetAWrongEdgeIsRejectedWithEvidenceAndARobotWithOnlyWrongEd
     rec.content_hash = i + 1;
     r.put_map(rec);
     std::string error;
-    prepared.push_back(prepare(f.maps[i], config, true, error));
+    prepared.push_back(prepare(*f.maps[i], config, true, error));
     ASSERT_TRUE(prepared.back()) << error;
   }
   r.claim_reference("r3");
@@ -875,40 +875,37 @@ TEST(Pipeline, AlignmentDataNoAlignmentUsesIsLetGoOfAndBuiltAgainWhenNeeded) {
   ASSERT_EQ(registry.status("r2"), RobotStatus::kAligned);
   for (const char* id : {"r1", "r2"}) {
     ASSERT_TRUE(registry.get(id)->prepared) << id;
-    ASSERT_TRUE(registry.get(id)->map->has_tree()) << id;
+    // The octree is built from the bytes while the map is prepared, and let go of at once.
+    EXPECT_FALSE(registry.get(id)->map->has_tree()) << id;
   }
   GlobalMapBuilder builder(config);
   const auto first = builder.build(registry, 1);
   ASSERT_TRUE(first);
   const auto map2 = registry.get("r2")->map;
-  const std::weak_ptr<const octomap::OcTree> tree2 = map2->tree();
+  const std::weak_ptr<const align::PreparedMap> prepared2 = registry.get("r2")->prepared;
   const auto running = registry.get("r1")->prepared;  // an alignment still using r1's
   ASSERT_TRUE(pipeline.alignment_data_idle());
   pipeline.process(Pipeline::release_job(), std::nullopt, true);
-  for (const char* id : {"r1", "r2"}) {
-    EXPECT_FALSE(registry.get(id)->prepared) << id;
-    EXPECT_FALSE(registry.get(id)->map->has_tree()) << id;
-  }
-  EXPECT_TRUE(tree2.expired()) << "r2's octree is still held";
+  for (const char* id : {"r1", "r2"}) EXPECT_FALSE(registry.get(id)->prepared) << id;
+  EXPECT_TRUE(prepared2.expired()) << "r2's prepared map is still held";
   EXPECT_GT(running->num_points(), 0u) << "a running alignment lost its prepared map";
   EXPECT_FALSE(pipeline.alignment_data_idle());
   // The maps are the same maps: nothing to fuse again, no new version.
   EXPECT_EQ(registry.get("r2")->map, map2);
   EXPECT_FALSE(builder.build(registry, 2));
   EXPECT_TRUE(builder.unchanged());
-  // A grown map is refined against r1's octree and clouds, built again from r1's bytes.
+  // A grown map is refined against r1's clouds, prepared again from r1's bytes.
   pipeline.process("r2", sample_of(pair.r2_grown, 2), false);
   EXPECT_EQ(refinements(pipeline), 1u);
   EXPECT_EQ(registry.status("r2"), RobotStatus::kAligned);
-  EXPECT_TRUE(registry.get("r1")->map->has_tree());
   EXPECT_TRUE(registry.get("r1")->prepared);
+  EXPECT_FALSE(registry.get("r1")->map->has_tree());
   // Data an alignment used since the cutoff is kept.
   registry.note_alignment_use("r1", Registry::Clock::now() + std::chrono::hours(1));
   const auto released = registry.release_alignment_data(Registry::Clock::now());
   EXPECT_EQ(released, std::vector<std::string>{"r2"});
   EXPECT_TRUE(registry.get("r1")->prepared);
-  EXPECT_TRUE(registry.get("r1")->map->has_tree());
-  EXPECT_FALSE(registry.get("r2")->map->has_tree());
+  EXPECT_FALSE(registry.get("r2")->prepared);
 }
 
 TEST(GlobalMapBuilder, AGrownMapIsFusedByItsDifferenceAndEqualsAFreshBuild) {

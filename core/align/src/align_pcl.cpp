@@ -69,8 +69,7 @@ Counts check_direction(const PreparedMap::Impl& from, const PreparedMap::Impl& t
             ++acc.inliers;
             acc.sum += d;
           } else if (d > d_conflict) {
-            const octomap::OcTreeNode* node = to.tree->search(p.x, p.y, p.z);
-            if (node != nullptr && !to.tree->isNodeOccupied(node)) ++acc.conflicts;
+            if (to.free_space->contains(Eigen::Vector3d(p.x, p.y, p.z))) ++acc.conflicts;
           }
         }
         return acc;
@@ -549,17 +548,6 @@ Validation validate(const PreparedMap& target, const PreparedMap& source,
 
 AlignResult align_maps(const octomap::OcTree& target, const octomap::OcTree& source,
                        const AlignConfig& config) {
-  const auto t_all = Clock::now();
-  PreparedMap t, s;
-  tbb::parallel_invoke([&] { t = prepare_map(target, config); },
-                       [&] { s = prepare_map(source, config); });
-  AlignResult r = align(t, s, config);
-  r.timings.total_ms = ms_since(t_all);
-  return r;
-}
-
-AlignResult align_maps(std::shared_ptr<const octomap::OcTree> target,
-                       std::shared_ptr<const octomap::OcTree> source, const AlignConfig& config) {
   const auto t_all = Clock::now();
   PreparedMap t, s;
   tbb::parallel_invoke([&] { t = prepare_map(target, config); },

@@ -242,23 +242,17 @@ const PreparedMap::Impl& PreparedMap::impl() const {
 }
 
 /// Stages 1-2, and 4-5 when `features`.
-static PreparedMap prepare_stages(std::shared_ptr<const octomap::OcTree> shared, const AlignConfig& config,
-                                  bool features);
+static PreparedMap prepare_stages(const octomap::OcTree& tree, const AlignConfig& config, bool features);
 
 PreparedMap prepare_map(const octomap::OcTree& tree, const AlignConfig& config) {
-  return prepare_map(std::make_shared<const octomap::OcTree>(tree), config);
+  return prepare_stages(tree, config, true);
 }
 
-PreparedMap prepare_map(std::shared_ptr<const octomap::OcTree> shared, const AlignConfig& config) {
-  return prepare_stages(std::move(shared), config, true);
+PreparedMap prepare_for_refine(const octomap::OcTree& tree, const AlignConfig& config) {
+  return prepare_stages(tree, config, false);
 }
 
-PreparedMap prepare_for_refine(std::shared_ptr<const octomap::OcTree> shared, const AlignConfig& config) {
-  return prepare_stages(std::move(shared), config, false);
-}
-
-PreparedMap prepare_stages(std::shared_ptr<const octomap::OcTree> shared, const AlignConfig& config, bool features) {
-  if (!shared) throw std::invalid_argument("prepare_map: no tree");
+PreparedMap prepare_stages(const octomap::OcTree& tree, const AlignConfig& config, bool features) {
   // PCL prints per-point warnings (degenerate ISS scatter, invalid SHOT frames) that the
   // pipeline already handles by dropping those points; results carry what matters.
   static std::once_flag quiet;
@@ -266,9 +260,10 @@ PreparedMap prepare_stages(std::shared_ptr<const octomap::OcTree> shared, const 
   check_align_config(config);
   const auto t_start = Clock::now();
   auto m = std::make_shared<PreparedMap::Impl>();
-  const octomap::OcTree& tree = *shared;
   m->resolution = tree.getResolution();
-  m->tree = std::move(shared);
+  // The free space validation asks of this map, as sorted keys (~8 B a free leaf): the octree
+  // itself (~57 B a node) is not kept.
+  m->free_space = std::make_shared<const LeafSet>(LeafSet::of(tree, LeafState::kFree));
 
   auto t0 = Clock::now();
   const std::vector<OccupiedPoint> points = to_points(tree, config.points);

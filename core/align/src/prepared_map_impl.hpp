@@ -11,6 +11,7 @@
 #include <pcl/point_types.h>
 
 #include "mapmerge/align/align.hpp"
+#include "mapmerge/map/leaf_set.hpp"
 
 namespace mapmerge::align {
 
@@ -21,7 +22,7 @@ using Shot = pcl::SHOT352;
 
 struct PreparedMap::Impl {
   double resolution = 0.0;
-  std::shared_ptr<const octomap::OcTree> tree;  ///< copy of the map: free space for validation
+  std::shared_ptr<const LeafSet> free_space;    ///< the map's free leaves: validation's conflicts
   std::size_t num_points = 0;                   ///< occupied voxels of stage 1
   Cloud::Ptr full;                               ///< stage 1 at full resolution (validation)
   pcl::KdTreeFLANN<Point>::Ptr full_tree;        ///< kd-tree over `full`

@@ -60,8 +60,9 @@ bool HeldMap::release_tree() const {
   return true;
 }
 
-std::shared_ptr<const OccupiedLeaves> HeldMap::occupied_leaves() const {
-  std::call_once(occupied_once_, [this] { occupied_ = std::make_shared<const OccupiedLeaves>(OccupiedLeaves::of(*this)); });
+std::shared_ptr<const LeafSet> HeldMap::occupied_leaves() const {
+  std::call_once(occupied_once_,
+                 [this] { occupied_ = std::make_shared<const LeafSet>(LeafSet::of(*this, LeafState::kOccupied)); });
   return occupied_;
 }
 

@@ -78,14 +78,13 @@ class PreparedMap {
 };
 
 /// Stages 1, 2, 4, 5 for one map. Throws std::invalid_argument for an unusable map (no
-/// occupied voxel) or config.
+/// occupied voxel) or config. The prepared map keeps no reference to the tree: what validation
+/// asks of its free space is kept as the tree's free leaves (mapmerge::LeafSet, ~8 B each).
 PreparedMap prepare_map(const octomap::OcTree& tree, const AlignConfig& config);
-/// Same, sharing the tree instead of copying it (the tree must not change afterwards).
-PreparedMap prepare_map(std::shared_ptr<const octomap::OcTree> tree, const AlignConfig& config);
 
 /// Stages 1 and 2 only (no keypoints, no descriptors): all refine() and validate() read, at a
 /// fraction of prepare_map()'s time and memory; align() refuses such a map (not accepted).
-PreparedMap prepare_for_refine(std::shared_ptr<const octomap::OcTree> tree, const AlignConfig& config);
+PreparedMap prepare_for_refine(const octomap::OcTree& tree, const AlignConfig& config);
 
 /// Global search: stages 3, 6, 7, 8. Never throws for "no alignment".
 AlignResult align(const PreparedMap& target, const PreparedMap& source, const AlignConfig& config);
@@ -101,8 +100,6 @@ Validation validate(const PreparedMap& target, const PreparedMap& source,
 /// prepare_map for both (in parallel) then align.
 AlignResult align_maps(const octomap::OcTree& target, const octomap::OcTree& source,
                        const AlignConfig& config);
-AlignResult align_maps(std::shared_ptr<const octomap::OcTree> target,
-                       std::shared_ptr<const octomap::OcTree> source, const AlignConfig& config);
 
 /// JSON object of the stage timings, e.g. {"to_points_ms": 3.1, ...}.
 std::string timings_json(const StageTimings& t);

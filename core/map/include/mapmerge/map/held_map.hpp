@@ -16,7 +16,7 @@
 
 #include <octomap/OcTree.h>
 
-#include "mapmerge/map/occupied_leaves.hpp"
+#include "mapmerge/map/leaf_set.hpp"
 
 namespace mapmerge {
 
@@ -57,7 +57,7 @@ class HeldMap {
   bool release_tree() const;
   /// The map's occupied leaves, read off the body on the first call (the tree is not built) and
   /// kept: what an overlap estimate asks of a map, at ~8 B per occupied leaf.
-  std::shared_ptr<const OccupiedLeaves> occupied_leaves() const;
+  std::shared_ptr<const LeafSet> occupied_leaves() const;
 
  private:
   friend std::shared_ptr<const HeldMap> detail::held_checked_body(double, std::shared_ptr<const std::vector<std::uint8_t>>,
@@ -73,7 +73,7 @@ class HeldMap {
   mutable std::shared_ptr<const octomap::OcTree> tree_;
   mutable std::atomic<bool> built_flag_{false};
   mutable std::once_flag occupied_once_;
-  mutable std::shared_ptr<const OccupiedLeaves> occupied_;
+  mutable std::shared_ptr<const LeafSet> occupied_;
 };
 
 }  // namespace mapmerge

@@ -1,4 +1,4 @@
-#include "mapmerge/map/occupied_leaves.hpp"
+#include "mapmerge/map/leaf_set.hpp"
 
 #include <algorithm>
 #include <cmath>
@@ -16,20 +16,45 @@ namespace {
 using detail::kTreeDepth;
 constexpr std::int64_t kCentreKey = 1 << (kTreeDepth - 1);  ///< key of the cell at the origin
 
-std::uint64_t pack(std::uint64_t x, std::uint64_t y, std::uint64_t z) { return x | (y << 16) | (z << 32); }
+/// The 16 bits of v spread to every third bit.
+std::uint64_t spread(std::uint64_t v) {
+  v &= 0xFFFFU;
+  v = (v | v << 32) & 0x1F00000000FFFFULL;
+  v = (v | v << 16) & 0x1F0000FF0000FFULL;
+  v = (v | v << 8) & 0x100F00F00F00F00FULL;
+  v = (v | v << 4) & 0x10C30C30C30C30C3ULL;
+  v = (v | v << 2) & 0x1249249249249249ULL;
+  return v;
+}
 
-/// The corner keys of a leaf `depth` levels below the root whose key is `key`.
-std::uint64_t mask_to_depth(std::uint64_t packed, unsigned depth) {
-  const std::uint64_t low = (std::uint64_t{1} << (kTreeDepth - depth)) - 1;
-  return packed & ~(low | (low << 16) | (low << 32));
+/// The inverse of spread().
+std::uint64_t compact(std::uint64_t v) {
+  v &= 0x1249249249249249ULL;
+  v = (v ^ (v >> 2)) & 0x10C30C30C30C30C3ULL;
+  v = (v ^ (v >> 4)) & 0x100F00F00F00F00FULL;
+  v = (v ^ (v >> 8)) & 0x1F0000FF0000FFULL;
+  v = (v ^ (v >> 16)) & 0x1F00000000FFFFULL;
+  v = (v ^ (v >> 32)) & 0xFFFFU;
+  return v;
+}
+
+/// A key's Morton code: per level, from the root down, its child index (x bit 0, y bit 1, z
+/// bit 2), so that a depth-first walk meets the leaves of one depth in increasing order.
+std::uint64_t pack(std::uint64_t x, std::uint64_t y, std::uint64_t z) {
+  return spread(x) | (spread(y) << 1) | (spread(z) << 2);
+}
+
+/// The code of the corner of the leaf `depth` levels below the root holding the key `code`.
+std::uint64_t mask_to_depth(std::uint64_t code, unsigned depth) {
+  return code & ~((std::uint64_t{1} << (3 * (kTreeDepth - depth))) - 1);
 }
 
 }  // namespace
 
 /// Walks a validated binary body's records (depth <= 16, so the recursion is bounded).
-class OccupiedLeavesWalk {
+class LeafSetWalk {
  public:
-  explicit OccupiedLeavesWalk(OccupiedLeaves& out) : out_(out) {}
+  LeafSetWalk(LeafSet& out, unsigned code) : out_(out), code_(code) {}
   void visit(const std::vector<std::uint8_t>& body, std::size_t& pos, unsigned depth, std::uint32_t x,
              std::uint32_t y, std::uint32_t z) {
     const std::uint8_t* record = body.data() + pos;
@@ -41,45 +66,47 @@ class OccupiedLeavesWalk {
                           cz = z + ((i & 4U) != 0 ? half : 0);
       if (code == 3) {
         visit(body, pos, depth + 1, cx, cy, cz);
-      } else if (code == 2) {
+      } else if (code == code_) {
         out_.add(depth + 1, cx, cy, cz);
       }
     }
   }
 
  private:
-  OccupiedLeaves& out_;
+  LeafSet& out_;
+  unsigned code_;  ///< the binary child code of the leaves kept: 1 free, 2 occupied
 };
 
-void OccupiedLeaves::add(unsigned depth, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
+void LeafSet::add(unsigned depth, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
   by_depth_[depth].push_back(pack(x, y, z));
 }
 
-void OccupiedLeaves::finish() {
+void LeafSet::finish() {
   size_ = 0;
   for (auto& keys : by_depth_) {
-    std::sort(keys.begin(), keys.end());
+    if (!std::is_sorted(keys.begin(), keys.end())) std::sort(keys.begin(), keys.end());  // depth first: sorted
     keys.shrink_to_fit();
     size_ += keys.size();
   }
 }
 
-OccupiedLeaves OccupiedLeaves::of(const HeldMap& map) {
+LeafSet LeafSet::of(const HeldMap& map, LeafState state) {
   const auto& body = map.binary_body();
-  if (!body) return of(*map.tree());
-  OccupiedLeaves out;
+  if (!body) return of(*map.tree(), state);
+  LeafSet out;
   out.resolution_ = map.resolution();
   std::size_t pos = 0;
-  if (body->size() >= 2) OccupiedLeavesWalk(out).visit(*body, pos, 0, 0, 0, 0);
+  if (body->size() >= 2) LeafSetWalk(out, state == LeafState::kOccupied ? 2U : 1U).visit(*body, pos, 0, 0, 0, 0);
   out.finish();
   return out;
 }
 
-OccupiedLeaves OccupiedLeaves::of(const octomap::OcTree& tree) {
-  OccupiedLeaves out;
+LeafSet LeafSet::of(const octomap::OcTree& tree, LeafState state) {
+  LeafSet out;
   out.resolution_ = tree.getResolution();
+  const bool occupied = state == LeafState::kOccupied;
   for (auto it = tree.begin_leafs(), end = tree.end_leafs(); it != end; ++it) {
-    if (!tree.isNodeOccupied(*it)) continue;
+    if (tree.isNodeOccupied(*it) != occupied) continue;
     const unsigned depth = it.getDepth();
     const octomap::OcTreeKey k = it.getKey();
     out.by_depth_[depth].push_back(mask_to_depth(pack(k[0], k[1], k[2]), depth));
@@ -88,7 +115,7 @@ OccupiedLeaves OccupiedLeaves::of(const octomap::OcTree& tree) {
   return out;
 }
 
-bool OccupiedLeaves::occupied(const Eigen::Vector3d& p) const {
+bool LeafSet::contains(const Eigen::Vector3d& p) const {
   std::uint64_t key[3];
   for (int a = 0; a < 3; ++a) {
     const double k = std::floor(p[a] / resolution_) + static_cast<double>(kCentreKey);
@@ -103,20 +130,20 @@ bool OccupiedLeaves::occupied(const Eigen::Vector3d& p) const {
   return false;
 }
 
-Eigen::Vector3d OccupiedLeaves::centre(std::size_t i) const {
+Eigen::Vector3d LeafSet::centre(std::size_t i) const {
   unsigned d = 0;
   while (i >= by_depth_[d].size()) i -= by_depth_[d++].size();  // i < size(): ends below kLevels
   const std::uint64_t k = by_depth_[d][i];
   const double half = static_cast<double>((1U << kTreeDepth) >> d) / 2.0;
   Eigen::Vector3d c;
   for (int a = 0; a < 3; ++a) {
-    const auto key = static_cast<double>((k >> (16 * a)) & 0xFFFFU);
+    const auto key = static_cast<double>(compact(k >> a));
     c[a] = (key - static_cast<double>(kCentreKey) + half) * resolution_;
   }
   return c;
 }
 
-double estimate_overlap(const OccupiedLeaves& target, const OccupiedLeaves& source,
+double estimate_overlap(const LeafSet& target, const LeafSet& source,
                         const Eigen::Matrix4d& T_target_source, std::size_t samples) {
   if (target.size() == 0 || source.size() == 0) return 0.0;
   const std::size_t stride = std::max<std::size_t>(1, source.size() / std::max<std::size_t>(1, samples));
@@ -128,7 +155,7 @@ double estimate_overlap(const OccupiedLeaves& target, const OccupiedLeaves& sour
     bool found = false;  // an occupied target voxel within one voxel
     for (int dx = -1; dx <= 1 && !found; ++dx)
       for (int dy = -1; dy <= 1 && !found; ++dy)
-        for (int dz = -1; dz <= 1 && !found; ++dz) found = target.occupied(p + Eigen::Vector3d(dx, dy, dz) * r);
+        for (int dz = -1; dz <= 1 && !found; ++dz) found = target.contains(p + Eigen::Vector3d(dx, dy, dz) * r);
     hit += found ? 1 : 0;
   }
   return static_cast<double>(hit) / static_cast<double>(seen);
