@@ -49,10 +49,10 @@ struct MergeConfig {
                                      ///< so a merge thread is free for searches and refinements
   bool keep_lost_maps = true;        ///< a robot whose writers are gone (left, or lease expired) stays
                                      ///< fused in the global map (false: left out until it returns)
-  double alignment_data_hold_s = 30.0;  ///< a robot's octree and alignment clouds (~60x its map's bytes),
-                                        ///< built for a search or refinement, are let go of when no
-                                        ///< alignment used them for this long, and built again from the
-                                        ///< map's bytes when one needs them [s]
+  double alignment_data_hold_s = 30.0;  ///< a robot's prepared map (alignment clouds, kd-trees, free
+                                        ///< space), built for a search or refinement, is let go of when
+                                        ///< no alignment used it for this long, and built again from the
+                                        ///< map's bytes when one needs it [s]
   double session_conflict_hold_s = 30.0;  ///< a session of a robot that a newer session replaced is refused
                                           ///< while the newer one published within this time: two
                                           ///< participants use one robot id [s]

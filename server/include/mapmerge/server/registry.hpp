@@ -87,9 +87,10 @@ class Registry {
   void set_prepared(const std::string& robot, std::uint64_t revision,
                     std::shared_ptr<const align::PreparedMap> prepared);
   void mark_tried(const std::string& robot, std::uint64_t revision, const std::string& other);
-  /// Notes that an alignment uses `robot`'s prepared map (and so its octree) at `now`.
+  /// Notes that an alignment uses `robot`'s prepared map at `now`.
   void note_alignment_use(const std::string& robot, Clock::time_point now = Clock::now());
-  /// The robots whose prepared map or octree no alignment used since `cutoff`.
+  /// The robots holding a prepared map (or an octree built from their bytes) that no alignment
+  /// used since `cutoff`.
   std::vector<std::string> idle_alignment_data(Clock::time_point cutoff) const;
   /// Lets go of those robots' prepared maps and octrees (built again from the maps' bytes when
   /// an alignment needs them; the maps themselves are unchanged); returns the robots released.
