@@ -194,7 +194,7 @@ void Pipeline::release_turn() {
                                                     std::chrono::duration<double>(config_.merge.alignment_data_hold_s));
   const auto released = registry_.release_alignment_data(cutoff);
   if (released.empty()) return;
-  malloc_trim(0);  // the octrees' pages back to the system (~5 ms; on a merge thread)
+  malloc_trim(0);  // the clouds' and kd-trees' pages back to the system (~5 ms; on a merge thread)
   std::string who;
   for (const auto& id : released) who += " " + id;
   spdlog::debug("alignment data of{} let go of: not used for {:.0f} s", who, config_.merge.alignment_data_hold_s);

@@ -248,7 +248,7 @@ std::vector<std::string> Registry::release_alignment_data(Clock::time_point cuto
   }
   freed.clear();
   for (const std::string& id : released) {
-    // The tree goes once the prepared map that shares it is gone (a running alignment keeps both).
+    // An octree built from the map's bytes for another use (an export) goes too.
     if (const auto rec = get(id); rec && rec->map) rec->map->release_tree();
   }
   return released;
