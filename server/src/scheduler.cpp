@@ -20,7 +20,7 @@ void lower_thread_priority(int increment) {
   errno = 0;
   const int now = getpriority(PRIO_PROCESS, tid);
   if (errno == 0 && setpriority(PRIO_PROCESS, tid, std::min(19, now + increment)) == 0) return;
-  spdlog::warn("background thread keeps the server's CPU priority: {}", std::strerror(errno));
+  spdlog::warn("merge thread keeps the server's CPU priority (merge.merge_nice not applied): {}", std::strerror(errno));
 }
 
 }  // namespace
