@@ -183,16 +183,15 @@ void Pipeline::refine_turn(const std::string& robot) {
   if (refine_known(*rec)) on_new_alignment(robot, false);
 }
 
-bool Pipeline::alignment_data_idle() const {
-  const auto cutoff = Registry::Clock::now() - std::chrono::duration_cast<Registry::Clock::duration>(
-                                                    std::chrono::duration<double>(config_.merge.alignment_data_hold_s));
-  return !registry_.idle_alignment_data(cutoff).empty();
+Registry::Clock::time_point Pipeline::alignment_data_cutoff() const {
+  return Registry::Clock::now() - std::chrono::duration_cast<Registry::Clock::duration>(
+                                      std::chrono::duration<double>(config_.merge.alignment_data_hold_s));
 }
 
+bool Pipeline::alignment_data_idle() const { return !registry_.idle_alignment_data(alignment_data_cutoff()).empty(); }
+
 void Pipeline::release_turn() {
-  const auto cutoff = Registry::Clock::now() - std::chrono::duration_cast<Registry::Clock::duration>(
-                                                    std::chrono::duration<double>(config_.merge.alignment_data_hold_s));
-  const auto released = registry_.release_alignment_data(cutoff);
+  const auto released = registry_.release_alignment_data(alignment_data_cutoff());
   if (released.empty()) return;
   malloc_trim(0);  // the clouds' and kd-trees' pages back to the system (~5 ms; on a merge thread)
   std::string who;

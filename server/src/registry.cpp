@@ -220,37 +220,40 @@ void Registry::note_alignment_use(const std::string& robot, Clock::time_point no
   t = std::max(t, now);
 }
 
+bool Registry::alignment_data_idle_locked(const std::string& robot, const RobotRecord& rec,
+                                          Clock::time_point cutoff) const {
+  if (!rec.map || (!rec.prepared && !(rec.map->binary_body() && rec.map->has_tree()))) return false;
+  const auto used = alignment_use_.find(robot);
+  return used == alignment_use_.end() || used->second < cutoff;
+}
+
 std::vector<std::string> Registry::idle_alignment_data(Clock::time_point cutoff) const {
   std::lock_guard<std::mutex> lock(mutex_);
   std::vector<std::string> idle;
   for (const auto& [id, rec] : records_) {
-    if (!rec->map || (!rec->prepared && !(rec->map->binary_body() && rec->map->has_tree()))) continue;
-    const auto used = alignment_use_.find(id);
-    if (used == alignment_use_.end() || used->second < cutoff) idle.push_back(id);
+    if (alignment_data_idle_locked(id, *rec, cutoff)) idle.push_back(id);
   }
   return idle;
 }
 
 std::vector<std::string> Registry::release_alignment_data(Clock::time_point cutoff) {
-  const std::vector<std::string> idle = idle_alignment_data(cutoff);
   std::vector<std::shared_ptr<const align::PreparedMap>> freed;  // freed after the lock is let go of
+  std::vector<std::shared_ptr<const HeldMap>> maps;
   std::vector<std::string> released;
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    for (const std::string& id : idle) {
-      const auto used = alignment_use_.find(id);
-      if (used != alignment_use_.end() && used->second >= cutoff) continue;  // used meanwhile
-      const auto it = records_.find(id);
-      if (it == records_.end() || !it->second->map) continue;
-      if (it->second->prepared) freed.push_back(std::exchange(mutable_record(id).prepared, nullptr));
+    for (const auto& [id, rec] : records_) {
+      if (!alignment_data_idle_locked(id, *rec, cutoff)) continue;
+      maps.push_back(rec->map);
       released.push_back(id);
+    }
+    for (const std::string& id : released) {
+      if (records_.at(id)->prepared) freed.push_back(std::exchange(mutable_record(id).prepared, nullptr));
     }
   }
   freed.clear();
-  for (const std::string& id : released) {
-    // An octree built from the map's bytes for another use (an export) goes too.
-    if (const auto rec = get(id); rec && rec->map) rec->map->release_tree();
-  }
+  // An octree built from a map's bytes for another use (an export) goes too.
+  for (const auto& map : maps) map->release_tree();
   return released;
 }
 

@@ -100,6 +100,8 @@ class Pipeline {
   void refine_turn(const std::string& robot);
   void search_turn(const std::string& robot);
   void release_turn();
+  /// Prepared maps last used before this are idle (merge.alignment_data_hold_s ago).
+  Registry::Clock::time_point alignment_data_cutoff() const;
   /// Stores the reference and the registry's edges except those of `robot`.
   void store_edges_without(const std::string& robot);
   /// Asks for a republish and, when `joined` (the aligned group grew), a retry of every

@@ -138,6 +138,7 @@ class Registry {
     std::uint64_t ignored = 0;         ///< duplicates and out-of-order updates
   };
   RobotRecord& mutable_record(const std::string& robot);
+  bool alignment_data_idle_locked(const std::string& robot, const RobotRecord& rec, Clock::time_point cutoff) const;
   std::map<std::string, GlobalPose> poses_locked() const;
   std::map<std::string, GlobalPose> composed_poses_locked() const;
   graph::GraphSolution solve_locked() const;
