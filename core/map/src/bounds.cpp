@@ -27,23 +27,9 @@ class BoundsWalk {
     }
   }
 
-  /// The inner node whose record starts at `pos` of a validated binary body; `pos` moves past
-  /// its subtree. Every byte is read (a subtree's length is known only by reading it).
-  void visit(const std::vector<std::uint8_t>& body, std::size_t& pos, std::array<std::uint32_t, 3> corner,
-             std::uint32_t size) {
-    const std::uint8_t* record = body.data() + pos;
-    pos += 2;
-    const std::uint32_t half = size / 2;
-    for (unsigned i = 0; i < 8; ++i) {
-      const unsigned code = detail::binary_child_code(record, i);
-      if (code == 0) continue;
-      const std::array<std::uint32_t, 3> child = child_corner(corner, half, i);
-      if (code == 3) {
-        visit(body, pos, child, half);  // validated: depth <= 16
-      } else if (!found_ || !inside(child, half)) {
-        add_leaf(child, half);
-      }
-    }
+  /// A leaf of a binary body (every byte is read: a subtree's length is known only by reading it).
+  void leaf(std::array<std::uint32_t, 3> corner, std::uint32_t size) {
+    if (!found_ || !inside(corner, size)) add_leaf(corner, size);
   }
 
   Eigen::AlignedBox3d box(double resolution) const {
@@ -95,8 +81,8 @@ Eigen::AlignedBox3d leaf_bounds(const HeldMap& map) {
   const auto& body = map.binary_body();
   if (map.has_tree() || !body) return leaf_bounds(*map.tree());
   BoundsWalk walk;
-  std::size_t pos = 0;
-  if (body->size() >= 2) walk.visit(*body, pos, {0, 0, 0}, 1U << kTreeDepth);
+  detail::for_each_binary_leaf(*body, [&](unsigned, unsigned depth, std::uint32_t x, std::uint32_t y,
+                                          std::uint32_t z) { walk.leaf({x, y, z}, (1U << kTreeDepth) >> depth); });
   return walk.box(map.resolution());
 }
 

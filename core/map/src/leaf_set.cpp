@@ -51,32 +51,6 @@ std::uint64_t mask_to_depth(std::uint64_t code, unsigned depth) {
 
 }  // namespace
 
-/// Walks a validated binary body's records (depth <= 16, so the recursion is bounded).
-class LeafSetWalk {
- public:
-  LeafSetWalk(LeafSet& out, unsigned code) : out_(out), code_(code) {}
-  void visit(const std::vector<std::uint8_t>& body, std::size_t& pos, unsigned depth, std::uint32_t x,
-             std::uint32_t y, std::uint32_t z) {
-    const std::uint8_t* record = body.data() + pos;
-    pos += 2;
-    const std::uint32_t half = (1U << kTreeDepth) >> (depth + 1);
-    for (unsigned i = 0; i < 8; ++i) {
-      const unsigned code = detail::binary_child_code(record, i);
-      const std::uint32_t cx = x + ((i & 1U) != 0 ? half : 0), cy = y + ((i & 2U) != 0 ? half : 0),
-                          cz = z + ((i & 4U) != 0 ? half : 0);
-      if (code == 3) {
-        visit(body, pos, depth + 1, cx, cy, cz);
-      } else if (code == code_) {
-        out_.add(depth + 1, cx, cy, cz);
-      }
-    }
-  }
-
- private:
-  LeafSet& out_;
-  unsigned code_;  ///< the binary child code of the leaves kept: 1 free, 2 occupied
-};
-
 void LeafSet::add(unsigned depth, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
   by_depth_[depth].push_back(pack(x, y, z));
 }
@@ -95,8 +69,11 @@ LeafSet LeafSet::of(const HeldMap& map, LeafState state) {
   if (!body) return of(*map.tree(), state);
   LeafSet out;
   out.resolution_ = map.resolution();
-  std::size_t pos = 0;
-  if (body->size() >= 2) LeafSetWalk(out, state == LeafState::kOccupied ? 2U : 1U).visit(*body, pos, 0, 0, 0, 0);
+  const unsigned kept = state == LeafState::kOccupied ? 2U : 1U;  // binary child code
+  detail::for_each_binary_leaf(*body, [&](unsigned code, unsigned depth, std::uint32_t x, std::uint32_t y,
+                                          std::uint32_t z) {
+    if (code == kept) out.add(depth, x, y, z);
+  });
   out.finish();
   return out;
 }

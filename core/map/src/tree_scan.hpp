@@ -26,6 +26,37 @@ inline unsigned binary_child_code(const std::uint8_t* record, unsigned i) {
   return (record[i / 4] >> (2 * (i % 4))) & 3U;
 }
 
+/// Calls `leaf(code, depth, x, y, z)` for every leaf of a validated binary body (code 1 free,
+/// 2 occupied; unknown children are skipped), in depth-first child order; (x, y, z) is the
+/// leaf's lowest corner in key units at full depth, `depth` its depth (1..16). The body must
+/// have passed scan_binary_body (depth <= 16 bounds the recursion).
+template <class Leaf>
+void for_each_binary_leaf(const std::vector<std::uint8_t>& body, Leaf&& leaf) {
+  struct Walk {
+    const std::vector<std::uint8_t>& body;
+    Leaf& leaf;
+    std::size_t pos = 0;
+    void visit(unsigned depth, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
+      const std::uint8_t* record = body.data() + pos;
+      pos += 2;
+      const std::uint32_t half = (1U << kTreeDepth) >> (depth + 1);
+      for (unsigned i = 0; i < 8; ++i) {
+        const unsigned code = binary_child_code(record, i);
+        if (code == 0) continue;
+        const std::uint32_t cx = x + ((i & 1U) != 0 ? half : 0), cy = y + ((i & 2U) != 0 ? half : 0),
+                            cz = z + ((i & 4U) != 0 ? half : 0);
+        if (code == 3) {
+          visit(depth + 1, cx, cy, cz);
+        } else {
+          leaf(code, depth + 1, cx, cy, cz);
+        }
+      }
+    }
+  };
+  if (body.size() < 2) return;
+  Walk{body, leaf}.visit(0, 0, 0, 0);
+}
+
 /// What a scan found: the node count of a well-formed body, or why it is not one.
 struct TreeScan {
   DecodeError error = DecodeError::kNone;
