@@ -25,6 +25,24 @@ State leaf_state(std::int64_t packed) {
   return detail::unpack_sum(packed) >= 0.0 ? State::kOccupied : State::kFree;
 }
 
+/// The deepest node of `sums` on the way from `root` to block `id`, at most at block depth, with
+/// its key and depth; nullptr when the way ends in a missing child (unknown space). Const or not
+/// as `sums` is.
+template <class Tree, class Node>
+Node* descend_to_block(Tree& sums, Node* root, std::uint64_t id, octomap::OcTreeKey& key,
+                       unsigned& depth) {
+  const octomap::OcTreeKey target = patch_block_key(id);
+  Node* node = root;
+  key = octomap::OcTreeKey(32768, 32768, 32768);
+  for (depth = 0; node != nullptr && depth < kPatchBlockDepth && sums.nodeHasChildren(node); ++depth) {
+    const unsigned i = octomap::computeChildIdx(target, static_cast<int>(15 - depth));
+    if (!sums.nodeChildExists(node, i)) return nullptr;
+    octomap::computeChildKey(i, static_cast<octomap::key_type>(32768 >> (depth + 1)), key, key);
+    node = sums.getNodeChild(node, i);
+  }
+  return node;
+}
+
 /// Writes OcTree::writeBinaryData's body of the maximum-likelihood, pruned global map: per inner
 /// node 2 bytes of 2-bit child codes (00 unknown, 01 free, 10 occupied, 11 inner), pre-order.
 /// A node's record is reserved before its children are written and dropped again when they all
@@ -77,22 +95,15 @@ class BodyWriter {
       detail::SumNode* node;
       octomap::OcTreeKey key;
       detail::EncodedBlock block;
-      State state = State::kUnknown;
     };
     std::vector<Job> jobs;
     for (const std::uint64_t id : ids) {
-      const octomap::OcTreeKey target = patch_block_key(id);
-      detail::SumNode* node = root;
-      octomap::OcTreeKey key(32768, 32768, 32768);
+      octomap::OcTreeKey key;
       unsigned depth = 0;
-      for (; depth < detail::SumTree::kBlockDepth && sums_.nodeHasChildren(node); ++depth) {
-        const unsigned i = octomap::computeChildIdx(target, static_cast<int>(15 - depth));
-        if (!sums_.nodeChildExists(node, i)) break;
-        octomap::computeChildKey(i, static_cast<octomap::key_type>(32768 >> (depth + 1)), key, key);
-        node = sums_.getNodeChild(node, i);
-      }
+      detail::SumNode* node = descend_to_block(sums_, root, id, key, depth);
       // Only inner nodes at block depth: write() handles leaves and missing blocks itself.
-      if (depth == detail::SumTree::kBlockDepth && sums_.nodeHasChildren(node)) jobs.push_back({id, node, key, {}});
+      if (node != nullptr && depth == detail::SumTree::kBlockDepth && sums_.nodeHasChildren(node))
+        jobs.push_back({id, node, key, {}});
     }
     if (jobs.size() < kParallelBlocks) return;
     std::atomic<std::size_t> next{0};
@@ -104,10 +115,10 @@ class BodyWriter {
       for (std::size_t k = next++; k < jobs.size(); k = next++) {
         bytes.clear();
         writer.nodes_ = 0;
-        jobs[k].state = writer.write_inner(jobs[k].node, jobs[k].key, detail::SumTree::kBlockDepth);
+        const State state = writer.write_inner(jobs[k].node, jobs[k].key, detail::SumTree::kBlockDepth);
         jobs[k].block.bytes = bytes;
         jobs[k].block.nodes = writer.nodes_;
-        jobs[k].block.state = static_cast<std::uint8_t>(jobs[k].state);
+        jobs[k].block.state = static_cast<std::uint8_t>(state);
       }
       deleted += writer.deleted_;
     };
@@ -246,13 +257,10 @@ std::optional<std::vector<BlockPatch>> patches_of(const detail::SumTree& sums, c
       continue;
     }
     // Not written as a block: a leaf at or above block depth, or nothing (unknown).
-    const octomap::OcTreeKey key = patch_block_key(ids[k]);
-    const detail::SumNode* node = sums.root_node();
-    for (unsigned depth = 0; node != nullptr && sums.nodeHasChildren(node); ++depth) {
-      if (depth == kPatchBlockDepth) return std::nullopt;  // an inner block the writer did not keep: cannot happen
-      const unsigned i = octomap::computeChildIdx(key, static_cast<int>(15 - depth));
-      node = sums.nodeChildExists(node, i) ? sums.getNodeChild(node, i) : nullptr;
-    }
+    octomap::OcTreeKey key;
+    unsigned depth = 0;
+    const detail::SumNode* node = descend_to_block(sums, sums.root_node(), ids[k], key, depth);
+    if (node != nullptr && sums.nodeHasChildren(node)) return std::nullopt;  // an inner block the writer did not keep: cannot happen
     p.state = node == nullptr ? BlockState::kUnknown : static_cast<BlockState>(leaf_state(node->getValue()));
   }
   return patches;
