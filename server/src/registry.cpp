@@ -174,7 +174,11 @@ void Registry::put_map(RobotRecord record) {
   record.last_error = r.last_error;
   record.tried.clear();
   auto& s = seen_[record.robot_id];
-  if (s.session.empty()) s = Seen{record.session_id, record.sequence};
+  if (s.session.empty()) {
+    s = Seen{};
+    s.session = record.session_id;
+    s.sequence = record.sequence;
+  }
   r = std::move(record);
 }
 
