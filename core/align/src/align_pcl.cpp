@@ -128,9 +128,10 @@ std::string rejection(const Validation& v, const ValidateConfig& c, double res) 
 // ---------------------------------------------------------------------------------------
 // Stage 8: local alignment.
 
-/// Target points inside the source's box (moved into the target frame) inflated by d_m.
-Cloud::Ptr crop_target(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
-                       const Eigen::Matrix4d& T, double margin) {
+/// Points of `target` (a target cloud) inside the source's box (moved into the target frame)
+/// inflated by d_m.
+Cloud::Ptr crop_target(const Cloud& target, const PreparedMap::Impl& source, const Eigen::Matrix4d& T,
+                       double margin) {
   Eigen::Vector3f lo = Eigen::Vector3f::Constant(std::numeric_limits<float>::max());
   Eigen::Vector3f hi = -lo;
   const Eigen::Matrix4f Tf = T.cast<float>();
@@ -143,7 +144,7 @@ Cloud::Ptr crop_target(const PreparedMap::Impl& target, const PreparedMap::Impl&
   lo -= m;
   hi += m;
   auto crop = std::make_shared<Cloud>();
-  for (const auto& p : *target.cloud) {
+  for (const auto& p : target) {
     const Eigen::Vector3f q = p.getVector3fMap();
     if ((q.array() >= lo.array()).all() && (q.array() <= hi.array()).all()) crop->push_back(p);
   }
@@ -181,6 +182,7 @@ Normal6 icp_system(const Cloud& src, std::size_t step, const Cloud& tgt,
       double w = weighted ? static_cast<double>(sp.intensity) * q.intensity : 1.0;
       if (c.point_to_plane) {
         const Eigen::Vector3d n = q.getNormalVector3fMap().cast<double>();
+        if (!n.allFinite()) continue;  // no plane at this target point
         const double r0 = diff.dot(n);
         if (r0 * r0 > dmax * dmax) continue;
         w /= 1.0 + (r0 * r0) / (sigma * sigma);  // Cauchy-like robust weight
@@ -235,21 +237,22 @@ Cloud overlap_sample(const Cloud& full, const pcl::KdTreeFLANN<Point>& tree, con
   return out;
 }
 
+/// ICP of the source's full-resolution points onto `target_crop` (its kd-tree `tree`). With
+/// `ramp`, the pair distance shrinks from max_correspondence to final_correspondence over the
+/// first third of the iterations; without, it is final_correspondence throughout (a start that
+/// is already refined).
 Eigen::Matrix4d icp(const PreparedMap::Impl& source, const Cloud::Ptr& target_crop,
-                    const Eigen::Matrix4d& T0, const RefineConfig& c, const LengthUnits& units,
-                    std::size_t max_points) {
-  if (target_crop->size() < 10) return T0;
-  pcl::KdTreeFLANN<Point> tree;
-  tree.setInputCloud(target_crop);
+                    const pcl::KdTreeFLANN<Point>& tree, const Eigen::Matrix4d& T0, const RefineConfig& c,
+                    const LengthUnits& units, std::size_t max_points, bool ramp) {
   // Source: full-resolution voxel centres (not the downsampled cloud), so the result is not
   // quantised by the describe voxel; target: downsampled points with their local planes.
-  const double first = c.max_correspondence * units.refine;
   const double last = c.final_correspondence * units.res;
+  const double first = ramp ? c.max_correspondence * units.refine : last;
   const Cloud src = overlap_sample(*source.full, tree, T0, first, max_points);
   Eigen::Matrix4d T = T0;
-  const int ramp = std::max(1, c.max_iterations / 3);  // iterations to reach final_correspondence
+  const int ramp_its = std::max(1, c.max_iterations / 3);  // iterations to reach final_correspondence
   for (int it = 0; it < c.max_iterations; ++it) {
-    const double f = std::min(1.0, static_cast<double>(it) / ramp);
+    const double f = ramp ? std::min(1.0, static_cast<double>(it) / ramp_its) : 1.0;
     const double dmax = first + f * (last - first);
     const Normal6 sys = icp_system(src, 1, *target_crop, tree, T, dmax, first, c, dmax / 2.0);
     if (sys.pairs < 6) break;
@@ -287,15 +290,29 @@ Eigen::Matrix4d ndt(const PreparedMap::Impl& source, const Cloud::Ptr& target_cr
   return reg.getFinalTransformation().cast<double>();
 }
 
-/// Stage 8. `polish`: the final pass on the chosen transform, with final_points.
+/// Stage 8's passes: a candidate's first refinement; the final pass on the chosen transform
+/// (final_points); that pass on fine normals (preprocess.fine_normal_radius), once the verdict
+/// is taken and in refine(). `from_polished`: the start is a polished transform, so no
+/// pair-distance ramp.
+enum class Pass { kCandidate, kPolish, kFine };
+
 Eigen::Matrix4d local_alignment(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
-                                const Eigen::Matrix4d& T0, const AlignConfig& cfg, bool polish) {
+                                const Eigen::Matrix4d& T0, const AlignConfig& cfg, Pass pass,
+                                bool from_polished = false) {
   const RefineConfig& c = cfg.refine;
   if (c.method == RefineMethod::kNone) return T0;
   const LengthUnits units = length_units(scale_of(target, source), cfg);
-  const Cloud::Ptr crop = crop_target(target, source, T0, c.crop_margin * units.refine);
-  if (c.method == RefineMethod::kNdt) return polish ? T0 : ndt(source, crop, T0, c, units);
-  return icp(source, crop, T0, c, units, polish ? c.final_points : c.max_points);
+  const Cloud::Ptr crop = crop_target(*target.cloud, source, T0, c.crop_margin * units.refine);
+  if (c.method == RefineMethod::kNdt) return pass == Pass::kCandidate ? ndt(source, crop, T0, c, units) : T0;
+  if (crop->size() < 10) return T0;
+  pcl::KdTreeFLANN<Point> tree;
+  tree.setInputCloud(crop);
+  if (pass == Pass::kFine) {
+    // Fine planes, fitted on the crop only (the d_m margin keeps its cut far from the overlap).
+    estimate_normals(*crop, tree, cfg.preprocess.fine_normal_radius * units.preprocess, nullptr, units.res);
+  }
+  return icp(source, crop, tree, T0, c, units, pass == Pass::kCandidate ? c.max_points : c.final_points,
+             !from_polished);
 }
 
 // ---------------------------------------------------------------------------------------
@@ -429,14 +446,15 @@ std::string select_best(std::vector<Candidate>& cands, const ValidateConfig& c,
   return why;
 }
 
-/// The final ICP pass with more points on a candidate; kept when it passes validation and
-/// scores at least `keep_ratio` of what the candidate scored before.
+/// A final ICP pass (`pass`) on a candidate; kept when it passes validation and scores at
+/// least `keep_ratio` of what the candidate scored before.
 void polish(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
             const AlignConfig& cfg, Candidate& best, StageTimings& t,
-            std::atomic<double>& validate_ms, double keep_ratio) {
+            std::atomic<double>& validate_ms, double keep_ratio, Pass pass = Pass::kPolish,
+            bool from_polished = false) {
   const double res = scale_of(target, source);
   auto t0 = Clock::now();
-  const Eigen::Matrix4d T = local_alignment(target, source, best.T_refined, cfg, true);
+  const Eigen::Matrix4d T = local_alignment(target, source, best.T_refined, cfg, pass, from_polished);
   t.refine_ms += ms_since(t0);
   t0 = Clock::now();
   const Validation v = check(target, source, T, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);
@@ -487,7 +505,7 @@ AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
                   " raw, from " + std::to_string(matches.size()) + " correspondences)");
   t0 = Clock::now();
   for (Candidate& c : cands)
-    c.T_refined = local_alignment(target, source, c.h.T_target_source, cfg, false);
+    c.T_refined = local_alignment(target, source, c.h.T_target_source, cfg, Pass::kCandidate);
   result.timings.refine_ms = ms_since(t0);
   t0 = Clock::now();
   for (Candidate& c : cands)
@@ -495,7 +513,9 @@ AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
   std::string why = select_best(cands, cfg.validate, units);
   add_ms(validate_ms, t0);
   if (why.empty()) {
-    polish(target, source, cfg, cands.front(), result.timings, validate_ms, 0.98);
+    // The verdict is taken: the final pass fits fine planes (sub-voxel, none averaged across a
+    // coarse map's staircase), with the pair-distance ramp (a candidate may still be degrees off).
+    polish(target, source, cfg, cands.front(), result.timings, validate_ms, 0.98, Pass::kFine);
   } else if (why.rfind(kAmbiguous, 0) == 0) {
     // Near-equal distinct candidates are often one basin that the first ICP left apart: the
     // final pass brings them together (then one is a duplicate) or shows which one is better.
@@ -505,6 +525,8 @@ AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
     t0 = Clock::now();
     why = select_best(cands, cfg.validate, units);
     add_ms(validate_ms, t0);
+    if (why.empty())  // polished already: fine planes from there, at the last pair distance
+      polish(target, source, cfg, cands.front(), result.timings, validate_ms, 0.98, Pass::kFine, true);
   }
   Candidate& best = cands.front();
   result.accepted = why.empty();
@@ -524,7 +546,7 @@ AlignResult refine(const PreparedMap& target_map, const PreparedMap& source_map,
   const PreparedMap::Impl& source = source_map.impl();
   AlignResult result;
   auto t0 = Clock::now();
-  const Eigen::Matrix4d T = local_alignment(target, source, T_target_source_init, cfg, true);
+  const Eigen::Matrix4d T = local_alignment(target, source, T_target_source_init, cfg, Pass::kFine);
   result.timings.refine_ms = ms_since(t0);
   t0 = Clock::now();
   const Validation v = check(target, source, T, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);

@@ -32,6 +32,7 @@ void for_each_field(Config& c, F&& f) {
   f("preprocess", "outlier_mean_k", p.outlier_mean_k);
   f("preprocess", "outlier_stddev", p.outlier_stddev);
   f("preprocess", "normal_radius", p.normal_radius);
+  f("preprocess", "fine_normal_radius", p.fine_normal_radius);
   f("preprocess", "orient_normals_to_free", p.orient_normals_to_free);
   auto& s = c.submodels;
   f("submodels", "enabled", s.enabled);
@@ -229,6 +230,7 @@ void check_align_config(const AlignConfig& c) {
   require(c.scale.feature_unit >= 0.0, "scale.feature_unit >= 0");
   require(c.preprocess.voxel_size > 0.0, "preprocess.voxel_size > 0");
   require(c.preprocess.normal_radius > 0.0, "preprocess.normal_radius > 0");
+  require(c.preprocess.fine_normal_radius > 0.0, "preprocess.fine_normal_radius > 0");
   require(c.preprocess.outlier_mean_k >= 1, "preprocess.outlier_mean_k >= 1");
   require(c.preprocess.z_min <= c.preprocess.z_max, "preprocess.z_min <= z_max");
   require(c.submodels.block_size > 0.0 && c.submodels.block_height > 0.0,

@@ -117,35 +117,6 @@ int free_votes(const octomap::OcTree& tree, const Point& p, float sign, double r
   return votes;
 }
 
-/// Normals of `cloud` from its neighbours within `radius` (found with `search`, a kd-tree over
-/// `cloud`), in parallel blocks; with `orient`, each faces the octree's free space (descriptors
-/// need a consistent sign; point-to-plane ICP does not).
-void estimate_normals(Cloud& cloud, const pcl::KdTreeFLANN<Point>& search, const octomap::OcTree& tree,
-                      bool orient, double radius, double res) {
-  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, cloud.size(), 512), [&](const auto& r) {
-    pcl::Indices idx;
-    std::vector<float> d2;
-    for (std::size_t i = r.begin(); i < r.end(); ++i) {
-      Point& p = cloud[i];
-      Eigen::Vector4f plane;
-      float curvature = 0.0F;
-      if (search.radiusSearch(p, radius, idx, d2) < 3 ||
-          !pcl::computePointNormal(cloud, idx, plane, curvature)) {
-        p.normal_x = p.normal_y = 0.0F;
-        p.normal_z = 1.0F;
-        p.curvature = 0.0F;
-        continue;
-      }
-      p.getNormalVector3fMap() = plane.head<3>();
-      p.curvature = curvature;
-      const int plus = orient ? free_votes(tree, p, 1.0F, res) : 0;
-      const int minus = orient ? free_votes(tree, p, -1.0F, res) : 0;
-      const bool flip = minus > plus || (minus == plus && p.normal_z < 0.0F);
-      if (flip) p.getNormalVector3fMap() *= -1.0F;
-    }
-  });
-}
-
 pcl::IndicesPtr detect_iss(const Cloud::ConstPtr& cloud, const KeypointConfig& c, double unit) {
   pcl::ISSKeypoint3D<Point, Point, Point> iss;
   iss.setInputCloud(cloud);
@@ -228,6 +199,38 @@ void describe(PreparedMap::Impl& m, const pcl::IndicesPtr& indices, const Descri
 
 }  // namespace
 
+void estimate_normals(Cloud& cloud, const pcl::KdTreeFLANN<Point>& search, double radius,
+                      const octomap::OcTree* orient_to, double res) {
+  const bool orient = orient_to != nullptr;
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, cloud.size(), 512), [&](const auto& r) {
+    pcl::Indices idx;
+    std::vector<float> d2;
+    for (std::size_t i = r.begin(); i < r.end(); ++i) {
+      Point& p = cloud[i];
+      Eigen::Vector4f plane;
+      float curvature = 0.0F;
+      if (search.radiusSearch(p, radius, idx, d2) < 3 ||
+          !pcl::computePointNormal(cloud, idx, plane, curvature)) {
+        p.normal_x = p.normal_y = 0.0F;
+        p.normal_z = 1.0F;
+        p.curvature = 0.0F;
+        continue;
+      }
+      p.getNormalVector3fMap() = plane.head<3>();
+      p.curvature = curvature;
+      // A degenerate neighbourhood (all points on one line, as along a one-voxel edge of a
+      // coarse map) has no plane: PCL gives NaN. The normal stays NaN (descriptors drop such
+      // points, ICP skips them) and is not oriented (OctoMap cannot look up a NaN position).
+      if (!plane.head<3>().allFinite()) continue;
+      const int plus = orient ? free_votes(*orient_to, p, 1.0F, res) : 0;
+      const int minus = orient ? free_votes(*orient_to, p, -1.0F, res) : 0;
+      const bool flip = minus > plus || (minus == plus && p.normal_z < 0.0F);
+      if (flip) p.getNormalVector3fMap() *= -1.0F;
+    }
+  });
+}
+
+
 PreparedMap::PreparedMap() = default;
 PreparedMap::PreparedMap(std::shared_ptr<const Impl> impl) : impl_(std::move(impl)) {}
 double PreparedMap::resolution() const { return impl().resolution; }
@@ -278,10 +281,14 @@ PreparedMap prepare_stages(const octomap::OcTree& tree, const AlignConfig& confi
   const LengthUnits units = length_units(m->resolution, config);
   m->cloud = preprocess(m->full, config.preprocess, units);
   if (m->cloud->size() < 10) throw std::invalid_argument("map has fewer than 10 points after preprocessing");
-  m->cloud_tree = std::make_shared<pcl::KdTreeFLANN<Point>>();
-  m->cloud_tree->setInputCloud(m->cloud);
-  estimate_normals(*m->cloud, *m->cloud_tree, tree, false,
-                   config.preprocess.normal_radius * units.preprocess, m->resolution);
+  // The ICP cloud's broad normals serve align()'s candidates; refine() and the last pass fit
+  // fine ones on the cropped target themselves, so a map prepared for refine() has none.
+  if (features) {
+    m->cloud_tree = std::make_shared<pcl::KdTreeFLANN<Point>>();
+    m->cloud_tree->setInputCloud(m->cloud);
+    estimate_normals(*m->cloud, *m->cloud_tree, config.preprocess.normal_radius * units.preprocess, nullptr,
+                     m->resolution);
+  }
   if (!features) {  // stages 1-2 only: what refine() and validate() read
     m->timings.preprocess_ms = ms_since(t0);
     m->timings.total_ms = ms_since(t_start);
@@ -290,8 +297,8 @@ PreparedMap prepare_stages(const octomap::OcTree& tree, const AlignConfig& confi
   m->coarse = voxel_grid(m->cloud, config.describe.voxel_size * units.feature);
   pcl::KdTreeFLANN<Point> coarse_tree;
   coarse_tree.setInputCloud(m->coarse);
-  estimate_normals(*m->coarse, coarse_tree, tree, config.preprocess.orient_normals_to_free,
-                   config.describe.normal_radius * units.feature, m->resolution);
+  estimate_normals(*m->coarse, coarse_tree, config.describe.normal_radius * units.feature,
+                   config.preprocess.orient_normals_to_free ? &tree : nullptr, m->resolution);
   m->timings.preprocess_ms = ms_since(t0);
 
   t0 = Clock::now();

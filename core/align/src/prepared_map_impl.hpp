@@ -6,6 +6,7 @@
 #include <memory>
 #include <vector>
 
+#include <octomap/OcTree.h>
 #include <pcl/kdtree/kdtree_flann.h>
 #include <pcl/point_cloud.h>
 #include <pcl/point_types.h>
@@ -26,7 +27,7 @@ struct PreparedMap::Impl {
   std::size_t num_points = 0;                   ///< occupied voxels of stage 1
   Cloud::Ptr full;                               ///< stage 1 at full resolution (validation)
   pcl::KdTreeFLANN<Point>::Ptr full_tree;        ///< kd-tree over `full`
-  Cloud::Ptr cloud;                              ///< stage 2 output, with normals and occupancy
+  Cloud::Ptr cloud;                              ///< stage 2 output, with occupancy (and broad normals when prepared with features)
   pcl::KdTreeFLANN<Point>::Ptr cloud_tree;       ///< kd-tree over `cloud`
   Cloud::Ptr coarse;                             ///< `cloud` at the describe voxel: keypoints, descriptors
   Cloud::Ptr keypoints;                          ///< stage 4, only those with a valid descriptor
@@ -36,6 +37,13 @@ struct PreparedMap::Impl {
   pcl::KdTreeFLANN<Shot>::Ptr shot_tree;
   StageTimings timings;
 };
+
+/// Normals of `cloud` from its neighbours within `radius` [m] (found with `search`, a kd-tree
+/// over `cloud`), in parallel blocks. With `orient_to`, each faces that octree's free space
+/// (descriptors need a consistent sign; point-to-plane ICP does not). A point with fewer than 3
+/// neighbours gets +z; one whose neighbours are collinear keeps a NaN normal (no plane).
+void estimate_normals(Cloud& cloud, const pcl::KdTreeFLANN<Point>& search, double radius,
+                      const octomap::OcTree* orient_to, double res);
 
 /// A hypothesis of stage 6 with its correspondence consensus.
 struct Hypothesis {

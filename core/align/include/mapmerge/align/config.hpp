@@ -40,7 +40,8 @@ struct PreprocessConfig {
   bool outlier_removal = true;     ///< statistical outlier removal on/off
   int outlier_mean_k = 8;          ///< neighbours for the statistical outlier removal [points]
   double outlier_stddev = 3.0;     ///< rejection threshold [standard deviations of the mean distance]
-  double normal_radius = 6.0;      ///< radius of the normal estimation [x u of the preprocess lengths]
+  double normal_radius = 6.0;      ///< radius of the ICP cloud's normals while candidates are refined [x u of the preprocess lengths]
+  double fine_normal_radius = 3.0;  ///< ... in the final pass on the chosen transform and in refine() [same unit] (1.2 cells of that cloud: planes that follow a coarse map's staircases instead of averaging across them)
   bool orient_normals_to_free = true;  ///< flip normals towards the octree's known free space
 };
 
