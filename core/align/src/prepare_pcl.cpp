@@ -284,9 +284,9 @@ PreparedMap prepare_stages(const octomap::OcTree& tree, const AlignConfig& confi
   // The ICP cloud's broad normals serve align()'s candidates; refine() and the last pass fit
   // fine ones on the cropped target themselves, so a map prepared for refine() has none.
   if (features) {
-    m->cloud_tree = std::make_shared<pcl::KdTreeFLANN<Point>>();
-    m->cloud_tree->setInputCloud(m->cloud);
-    estimate_normals(*m->cloud, *m->cloud_tree, config.preprocess.normal_radius * units.preprocess, nullptr,
+    pcl::KdTreeFLANN<Point> cloud_tree;  // only for these normals
+    cloud_tree.setInputCloud(m->cloud);
+    estimate_normals(*m->cloud, cloud_tree, config.preprocess.normal_radius * units.preprocess, nullptr,
                      m->resolution);
   }
   if (!features) {  // stages 1-2 only: what refine() and validate() read

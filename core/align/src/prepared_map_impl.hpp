@@ -6,13 +6,16 @@
 #include <memory>
 #include <vector>
 
-#include <octomap/OcTree.h>
 #include <pcl/kdtree/kdtree_flann.h>
 #include <pcl/point_cloud.h>
 #include <pcl/point_types.h>
 
 #include "mapmerge/align/align.hpp"
 #include "mapmerge/map/leaf_set.hpp"
+
+namespace octomap {
+class OcTree;
+}
 
 namespace mapmerge::align {
 
@@ -28,7 +31,6 @@ struct PreparedMap::Impl {
   Cloud::Ptr full;                               ///< stage 1 at full resolution (validation)
   pcl::KdTreeFLANN<Point>::Ptr full_tree;        ///< kd-tree over `full`
   Cloud::Ptr cloud;                              ///< stage 2 output, with occupancy (and broad normals when prepared with features)
-  pcl::KdTreeFLANN<Point>::Ptr cloud_tree;       ///< kd-tree over `cloud`
   Cloud::Ptr coarse;                             ///< `cloud` at the describe voxel: keypoints, descriptors
   Cloud::Ptr keypoints;                          ///< stage 4, only those with a valid descriptor
   pcl::PointCloud<Fpfh>::Ptr fpfh;               ///< stage 5 when FPFH (one per keypoint)
