@@ -113,6 +113,14 @@ Prepared prepare(const octomap::OcTree& tree, const ma::AlignConfig& c) {
   return p;
 }
 
+std::string fmt(double v, int prec = 3) {
+  if (std::isnan(v)) return "-";
+  if (std::isinf(v)) return "inf";
+  char b[32];
+  std::snprintf(b, sizeof b, "%.*f", prec, v);
+  return b;
+}
+
 Row run_case(const std::string& map, const Prepared& target, const Prepared& source,
              const Variant& v, const Pose& pose, double overlap, bool floor_only = false) {
   const auto t0 = Clock::now();
@@ -139,7 +147,8 @@ Row run_case(const std::string& map, const Prepared& target, const Prepared& sou
     const Errors floor = errors(from_truth.T_target_source, pose.matrix());
     row.floor_t_err = floor.t_err;
     if (floor_only)
-      std::cerr << "  floor rot " << floor.rot_deg << " deg, trans " << floor.trans_m << " m\n";
+      std::cerr << std::lround(overlap * 100) << "% " << pose.str() << " from the truth: T_err " << fmt(floor.t_err)
+                << " rot " << fmt(floor.rot_deg, 2) << " trans " << fmt(floor.trans_m) << "\n";
   }
   if (r.accepted) {
     const Errors e = errors(r.T_target_source, pose.matrix());
@@ -156,14 +165,6 @@ double quantile(std::vector<double> v, double q) {
   std::sort(v.begin(), v.end());
   const auto i = static_cast<std::size_t>(std::min<double>(v.size() - 1, q * (v.size() - 1) + 0.5));
   return v[i];
-}
-
-std::string fmt(double v, int prec = 3) {
-  if (std::isnan(v)) return "-";
-  if (std::isinf(v)) return "inf";
-  char b[32];
-  std::snprintf(b, sizeof b, "%.*f", prec, v);
-  return b;
 }
 
 void print_rows(std::ostream& out, const std::vector<Row>& rows) {
@@ -332,10 +333,7 @@ int main(int argc, char** argv) {
           if (!source_cache.count(key)) source_cache[key] = prepare(*source, v.config);
           rows.push_back(run_case(name, target_cache[key], source_cache[key], v, pose, pct / 100.0, floor_only));
           const Row& r = rows.back();
-          if (floor_only) {
-            std::cerr << pct << "% " << pose.str() << " T_err from the truth " << fmt(r.floor_t_err) << "\n";
-            continue;
-          }
+          if (floor_only) continue;  // run_case printed the floor
           std::cerr << pct << "% " << pose.str() << " " << v.name << ": "
                     << (r.success ? "ok" : (r.accepted ? "WRONG" : "rejected (" + r.reason + ")"))
                     << " rot " << fmt(r.rot_err, 2) << " trans " << fmt(r.trans_err) << " t "
