@@ -6,7 +6,12 @@
 
 #include <Eigen/Cholesky>
 #include <Eigen/Geometry>
+// GCC 12 sees a 6x6 JacobiSVD inside PCL's NDT as "maybe uninitialized" (a false positive in
+// system headers, reported since this unit inlines differently with FLANN's kd-tree in it).
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
 #include <pcl/registration/ndt.h>
+#pragma GCC diagnostic pop
 #include <tbb/global_control.h>
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_invoke.h>
@@ -161,7 +166,7 @@ struct Normal6 {
 /// are nearest neighbours within `nn_max`; point-to-plane gates on the plane distance `dmax`
 /// (a target point stands for a voxel-grid cell, so the in-plane offset is not an error).
 Normal6 icp_system(const Cloud& src, std::size_t step, const Cloud& tgt,
-                   const pcl::KdTreeFLANN<Point>& tree, const Eigen::Matrix4d& T, double dmax,
+                   const SerialKdTree<Point>& tree, const Eigen::Matrix4d& T, double dmax,
                    double nn_max, const RefineConfig& c, double sigma) {
   const Eigen::Matrix4f Tf = T.cast<float>();
   const bool weighted = c.method == RefineMethod::kOicp;
@@ -217,7 +222,7 @@ Normal6 icp_system(const Cloud& src, std::size_t step, const Cloud& tgt,
 
 /// Full-resolution source points that have a target point within `dmax` under T0: ICP spends
 /// its budget on the overlap only (at 10 % overlap most of a map has no partner).
-Cloud overlap_sample(const Cloud& full, const pcl::KdTreeFLANN<Point>& tree, const Eigen::Matrix4d& T0,
+Cloud overlap_sample(const Cloud& full, const SerialKdTree<Point>& tree, const Eigen::Matrix4d& T0,
                      double dmax, std::size_t max_points) {
   const std::size_t probe_step = std::max<std::size_t>(1, full.size() / (2 * max_points));
   const Eigen::Matrix4f T = T0.cast<float>();
@@ -242,7 +247,7 @@ Cloud overlap_sample(const Cloud& full, const pcl::KdTreeFLANN<Point>& tree, con
 /// first third of the iterations; without, it is final_correspondence throughout (a start that
 /// is already refined).
 Eigen::Matrix4d icp(const PreparedMap::Impl& source, const Cloud::Ptr& target_crop,
-                    const pcl::KdTreeFLANN<Point>& tree, const Eigen::Matrix4d& T0, const RefineConfig& c,
+                    const SerialKdTree<Point>& tree, const Eigen::Matrix4d& T0, const RefineConfig& c,
                     const LengthUnits& units, std::size_t max_points, bool ramp) {
   // Source: full-resolution voxel centres (not the downsampled cloud), so the result is not
   // quantised by the describe voxel; target: downsampled points with their local planes.
@@ -305,7 +310,7 @@ Eigen::Matrix4d local_alignment(const PreparedMap::Impl& target, const PreparedM
   const Cloud::Ptr crop = crop_target(*target.cloud, source, T0, c.crop_margin * units.refine);
   if (c.method == RefineMethod::kNdt) return pass == Pass::kCandidate ? ndt(source, crop, T0, c, units) : T0;
   if (crop->size() < 10) return T0;
-  pcl::KdTreeFLANN<Point> tree;
+  SerialKdTree<Point> tree;
   tree.setInputCloud(crop);
   if (pass == Pass::kFine) {
     // Fine planes, fitted on the crop only (the d_m margin keeps its cut far from the overlap).
@@ -588,7 +593,7 @@ Fitness fitness_score(const std::vector<Eigen::Vector3f>& source_in_target,
     q.getVector3fMap() = p;
     cloud->push_back(q);
   }
-  pcl::KdTreeFLANN<Point> tree;
+  SerialKdTree<Point> tree;
   tree.setInputCloud(cloud);
   std::vector<double> distances;
   pcl::Indices idx(1);

@@ -19,8 +19,8 @@ namespace {
 
 template <class Feature>
 std::vector<Match> match_features(const pcl::PointCloud<Feature>& src_f,
-                                  const pcl::KdTreeFLANN<Feature>& src_tree,
-                                  const pcl::KdTreeFLANN<Feature>& tgt_tree,
+                                  const SerialKdTree<Feature>& src_tree,
+                                  const SerialKdTree<Feature>& tgt_tree,
                                   const MatchConfig& c) {
   std::vector<Match> matches;
   const int k = c.mutual ? 1 : c.k_nearest;

@@ -117,9 +117,12 @@ int free_votes(const octomap::OcTree& tree, const Point& p, float sign, double r
   return votes;
 }
 
-pcl::IndicesPtr detect_iss(const Cloud::ConstPtr& cloud, const KeypointConfig& c, double unit) {
+/// ISS keypoints of `cloud`; `tree` indexes `cloud`.
+pcl::IndicesPtr detect_iss(const Cloud::ConstPtr& cloud, const SerialKdTree<Point>::Ptr& tree,
+                           const KeypointConfig& c, double unit) {
   pcl::ISSKeypoint3D<Point, Point, Point> iss;
   iss.setInputCloud(cloud);
+  iss.setSearchMethod(tree);
   iss.setSalientRadius(c.salient_radius * unit);
   iss.setNonMaxRadius(c.non_max_radius * unit);
   iss.setThreshold21(c.gamma_21);
@@ -156,50 +159,48 @@ Cloud::Ptr keep_valid(const Cloud& cloud, const pcl::Indices& indices,
 }
 
 template <class Estimator, class Features>
-void compute_feature(Estimator& est, const Cloud::Ptr& cloud, const pcl::IndicesPtr& indices,
-                     double radius, Features& out) {
+void compute_feature(Estimator& est, const Cloud::Ptr& cloud, const SerialKdTree<Point>::Ptr& tree,
+                     const pcl::IndicesPtr& indices, double radius, Features& out) {
   est.setInputCloud(cloud);
   est.setIndices(indices);
   est.setInputNormals(cloud);
+  est.setSearchMethod(tree);
   est.setRadiusSearch(radius);
   est.compute(out);
 }
 
-void describe(PreparedMap::Impl& m, const pcl::IndicesPtr& indices, const DescribeConfig& c,
-              double unit) {
+/// Stage 5 at `indices` of m.coarse; `tree` indexes m.coarse.
+void describe(PreparedMap::Impl& m, const SerialKdTree<Point>::Ptr& tree, const pcl::IndicesPtr& indices,
+              const DescribeConfig& c, double unit) {
   const double radius = c.radius * unit;
   const unsigned threads = static_cast<unsigned>(std::max(1, c.threads));
   if (c.method == Descriptor::kFpfh) {
     auto features = std::make_shared<pcl::PointCloud<Fpfh>>();
     if (threads > 1) {
       pcl::FPFHEstimationOMP<Point, Point, Fpfh> est(threads);
-      compute_feature(est, m.coarse, indices, radius, *features);
+      compute_feature(est, m.coarse, tree, indices, radius, *features);
     } else {
       pcl::FPFHEstimation<Point, Point, Fpfh> est;  // no OpenMP team to start and spin
-      compute_feature(est, m.coarse, indices, radius, *features);
+      compute_feature(est, m.coarse, tree, indices, radius, *features);
     }
     m.keypoints = keep_valid(*m.coarse, *indices, *features);
     m.fpfh = features;
-    m.fpfh_tree = std::make_shared<pcl::KdTreeFLANN<Fpfh>>();
+    m.fpfh_tree = std::make_shared<SerialKdTree<Fpfh>>();
     if (!features->empty()) m.fpfh_tree->setInputCloud(features);
   } else {
     pcl::SHOTEstimationOMP<Point, Point, Shot> est(threads);
-    est.setInputCloud(m.coarse);
-    est.setIndices(indices);
-    est.setInputNormals(m.coarse);
-    est.setRadiusSearch(radius);
     auto features = std::make_shared<pcl::PointCloud<Shot>>();
-    est.compute(*features);
+    compute_feature(est, m.coarse, tree, indices, radius, *features);
     m.keypoints = keep_valid(*m.coarse, *indices, *features);
     m.shot = features;
-    m.shot_tree = std::make_shared<pcl::KdTreeFLANN<Shot>>();
+    m.shot_tree = std::make_shared<SerialKdTree<Shot>>();
     if (!features->empty()) m.shot_tree->setInputCloud(features);
   }
 }
 
 }  // namespace
 
-void estimate_normals(Cloud& cloud, const pcl::KdTreeFLANN<Point>& search, double radius,
+void estimate_normals(Cloud& cloud, const SerialKdTree<Point>& search, double radius,
                       const octomap::OcTree* orient_to, double res) {
   const bool orient = orient_to != nullptr;
   tbb::parallel_for(tbb::blocked_range<std::size_t>(0, cloud.size(), 512), [&](const auto& r) {
@@ -276,7 +277,7 @@ PreparedMap prepare_stages(const octomap::OcTree& tree, const AlignConfig& confi
 
   t0 = Clock::now();
   m->full = to_cloud(points);
-  m->full_tree = std::make_shared<pcl::KdTreeFLANN<Point>>();
+  m->full_tree = std::make_shared<SerialKdTree<Point>>();
   m->full_tree->setInputCloud(m->full);
   const LengthUnits units = length_units(m->resolution, config);
   m->cloud = preprocess(m->full, config.preprocess, units);
@@ -284,7 +285,7 @@ PreparedMap prepare_stages(const octomap::OcTree& tree, const AlignConfig& confi
   // The ICP cloud's broad normals serve align()'s candidates; refine() and the last pass fit
   // fine ones on the cropped target themselves, so a map prepared for refine() has none.
   if (features) {
-    pcl::KdTreeFLANN<Point> cloud_tree;  // only for these normals
+    SerialKdTree<Point> cloud_tree;  // only for these normals
     cloud_tree.setInputCloud(m->cloud);
     estimate_normals(*m->cloud, cloud_tree, config.preprocess.normal_radius * units.preprocess, nullptr,
                      m->resolution);
@@ -295,18 +296,19 @@ PreparedMap prepare_stages(const octomap::OcTree& tree, const AlignConfig& confi
     return PreparedMap(std::move(m));
   }
   m->coarse = voxel_grid(m->cloud, config.describe.voxel_size * units.feature);
-  pcl::KdTreeFLANN<Point> coarse_tree;
-  coarse_tree.setInputCloud(m->coarse);
-  estimate_normals(*m->coarse, coarse_tree, config.describe.normal_radius * units.feature,
+  // One tree over the coarse cloud serves its normals, ISS and the descriptors.
+  const auto coarse_tree = std::make_shared<SerialKdTree<Point>>();
+  coarse_tree->setInputCloud(m->coarse);
+  estimate_normals(*m->coarse, *coarse_tree, config.describe.normal_radius * units.feature,
                    config.preprocess.orient_normals_to_free ? &tree : nullptr, m->resolution);
   m->timings.preprocess_ms = ms_since(t0);
 
   t0 = Clock::now();
-  const pcl::IndicesPtr indices = detect_iss(m->coarse, config.keypoints, units.feature);
+  const pcl::IndicesPtr indices = detect_iss(m->coarse, coarse_tree, config.keypoints, units.feature);
   m->timings.keypoints_ms = ms_since(t0);
 
   t0 = Clock::now();
-  describe(*m, indices, config.describe, units.feature);
+  describe(*m, coarse_tree, indices, config.describe, units.feature);
   m->timings.describe_ms = ms_since(t0);
   m->timings.total_ms = ms_since(t_start);
   return PreparedMap(std::move(m));
@@ -320,7 +322,9 @@ std::vector<std::size_t> iss_keypoints(const std::vector<Eigen::Vector3f>& point
     q.getVector3fMap() = p;
     cloud->push_back(q);
   }
-  const pcl::IndicesPtr indices = detect_iss(cloud, config, unit);
+  auto tree = std::make_shared<SerialKdTree<Point>>();
+  tree->setInputCloud(cloud);
+  const pcl::IndicesPtr indices = detect_iss(cloud, tree, config, unit);
   return std::vector<std::size_t>(indices->begin(), indices->end());
 }
 

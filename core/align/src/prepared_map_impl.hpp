@@ -6,12 +6,12 @@
 #include <memory>
 #include <vector>
 
-#include <pcl/kdtree/kdtree_flann.h>
 #include <pcl/point_cloud.h>
 #include <pcl/point_types.h>
 
 #include "mapmerge/align/align.hpp"
 #include "mapmerge/map/leaf_set.hpp"
+#include "serial_kd_tree.hpp"
 
 namespace octomap {
 class OcTree;
@@ -29,14 +29,14 @@ struct PreparedMap::Impl {
   std::shared_ptr<const LeafSet> free_space;    ///< the map's free leaves: validation's conflicts
   std::size_t num_points = 0;                   ///< occupied voxels of stage 1
   Cloud::Ptr full;                               ///< stage 1 at full resolution (validation)
-  pcl::KdTreeFLANN<Point>::Ptr full_tree;        ///< kd-tree over `full`
+  SerialKdTree<Point>::Ptr full_tree;            ///< kd-tree over `full`
   Cloud::Ptr cloud;                              ///< stage 2 output, with occupancy (and broad normals when prepared with features)
   Cloud::Ptr coarse;                             ///< `cloud` at the describe voxel: keypoints, descriptors
   Cloud::Ptr keypoints;                          ///< stage 4, only those with a valid descriptor
   pcl::PointCloud<Fpfh>::Ptr fpfh;               ///< stage 5 when FPFH (one per keypoint)
   pcl::PointCloud<Shot>::Ptr shot;               ///< stage 5 when SHOT
-  pcl::KdTreeFLANN<Fpfh>::Ptr fpfh_tree;
-  pcl::KdTreeFLANN<Shot>::Ptr shot_tree;
+  SerialKdTree<Fpfh>::Ptr fpfh_tree;
+  SerialKdTree<Shot>::Ptr shot_tree;
   StageTimings timings;
 };
 
@@ -44,7 +44,7 @@ struct PreparedMap::Impl {
 /// over `cloud`), in parallel blocks. With `orient_to`, each faces that octree's free space
 /// (descriptors need a consistent sign; point-to-plane ICP does not). A point with fewer than 3
 /// neighbours gets +z; one whose neighbours are collinear keeps a NaN normal (no plane).
-void estimate_normals(Cloud& cloud, const pcl::KdTreeFLANN<Point>& search, double radius,
+void estimate_normals(Cloud& cloud, const SerialKdTree<Point>& search, double radius,
                       const octomap::OcTree* orient_to, double res);
 
 /// A hypothesis of stage 6 with its correspondence consensus.

@@ -1,0 +1,167 @@
+#pragma once
+/// Internal: the kd-tree behind every neighbour query of the pipeline, ours and PCL's.
+///
+/// pcl::KdTreeFLANN (and pcl::search::KdTree, which wraps it) sends each single-point query
+/// through flann::Index::knnSearch / radiusSearch, whose body is an OpenMP parallel region even
+/// with one thread; libgomp ends every region with barrier wake-ups that are system calls. The
+/// paper pair made 753k futex calls, and ~40 % of a merge's CPU time was spent in the kernel.
+/// This tree is FLANN's same single kd-tree (leaves of 15 points, exact search) queried directly
+/// on the calling thread, so it returns the same neighbours in the same order without them.
+/// It derives from pcl::search::Search so PCL's estimators take it with setSearchMethod.
+
+#include <algorithm>
+#include <cstddef>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <flann/algorithms/dist.h>
+#include <flann/algorithms/kdtree_single_index.h>
+#include <flann/util/result_set.h>
+#include <pcl/point_representation.h>
+#include <pcl/search/search.h>
+
+namespace mapmerge::align {
+
+template <class PointT>
+class SerialKdTree final : public pcl::search::Search<PointT> {
+  using Base = pcl::search::Search<PointT>;
+
+ public:
+  using Ptr = std::shared_ptr<SerialKdTree>;
+  using ConstPtr = std::shared_ptr<const SerialKdTree>;
+  using typename Base::IndicesConstPtr;
+  using typename Base::PointCloudConstPtr;
+  using Base::nearestKSearch;
+  using Base::radiusSearch;
+
+  /// `sorted`: radius results by increasing distance (k-nearest results always are).
+  explicit SerialKdTree(bool sorted = true) : Base("SerialKdTree", sorted) {}
+
+  /// Indexes the valid points of `cloud` (of `indices` when given); results are indices into
+  /// `cloud`. Giving the cloud and indices it already indexes keeps the tree (PCL's estimators
+  /// hand their search surface over again): give a new cloud object when points have moved.
+  void setInputCloud(const PointCloudConstPtr& cloud,
+                     const IndicesConstPtr& indices = IndicesConstPtr()) override {
+    if (index_ && cloud == this->input_ && indices == this->indices_) return;
+    this->input_ = cloud;
+    this->indices_ = indices;
+    index_.reset();
+    ids_.clear();
+    data_.clear();
+    if (!cloud) return;
+    const std::size_t n = indices ? indices->size() : cloud->size();
+    data_.reserve(n * static_cast<std::size_t>(dim_));
+    ids_.reserve(n);
+    for (std::size_t k = 0; k < n; ++k) {
+      const auto i = indices ? (*indices)[k] : static_cast<pcl::index_t>(k);
+      const PointT& p = (*cloud)[static_cast<std::size_t>(i)];
+      if (!repr_.isValid(p)) continue;
+      ids_.push_back(i);
+      data_.resize(data_.size() + static_cast<std::size_t>(dim_));
+      float* out = data_.data() + data_.size() - static_cast<std::size_t>(dim_);
+      repr_.vectorize(p, out);
+    }
+    if (ids_.empty()) return;
+    index_ = std::make_unique<Index>(flann::Matrix<float>(data_.data(), ids_.size(), static_cast<std::size_t>(dim_)),
+                                     flann::KDTreeSingleIndexParams(15));
+    index_->buildIndex();
+  }
+
+  /// The min(k, size) nearest points, nearest first; returns how many.
+  int nearestKSearch(const PointT& point, int k, pcl::Indices& k_indices,
+                     std::vector<float>& k_sqr_distances) const override {
+    const std::size_t n = std::min(static_cast<std::size_t>(std::max(k, 0)), ids_.size());
+    k_indices.resize(n);
+    k_sqr_distances.resize(n);
+    if (n == 0) return 0;
+    Query q(*this, point);
+    std::vector<std::size_t> found(n);
+    if (n > kHeapThreshold) {  // as flann::Index::knnSearch chooses
+      flann::KNNResultSet2<float> result(n);
+      index_->findNeighbors(result, q.data(), params_);
+      result.copy(found.data(), k_sqr_distances.data(), n, true);
+    } else {
+      flann::KNNSimpleResultSet<float> result(n);
+      index_->findNeighbors(result, q.data(), params_);
+      result.copy(found.data(), k_sqr_distances.data(), n, true);
+    }
+    for (std::size_t j = 0; j < n; ++j) k_indices[j] = ids_[found[j]];
+    return static_cast<int>(n);
+  }
+
+  /// The points closer than `radius` [m]; with `max_nn` > 0 only the nearest `max_nn` of them.
+  int radiusSearch(const PointT& point, double radius, pcl::Indices& k_indices,
+                   std::vector<float>& k_sqr_distances, unsigned int max_nn = 0) const override {
+    k_indices.clear();
+    k_sqr_distances.clear();
+    if (ids_.empty()) return 0;
+    const auto r2 = static_cast<float>(radius * radius);
+    Query q(*this, point);
+    if (max_nn == 0 || max_nn >= ids_.size()) {
+      Within result(r2);
+      index_->findNeighbors(result, q.data(), params_);
+      if (this->sorted_results_) std::sort(result.hits.begin(), result.hits.end());
+      k_indices.reserve(result.hits.size());
+      k_sqr_distances.reserve(result.hits.size());
+      for (const auto& h : result.hits) {
+        k_indices.push_back(ids_[h.index_]);
+        k_sqr_distances.push_back(h.dist_);
+      }
+      return static_cast<int>(k_indices.size());
+    }
+    flann::KNNRadiusResultSet<float> result(r2, max_nn);
+    index_->findNeighbors(result, q.data(), params_);
+    const std::size_t m = std::min(result.size(), static_cast<std::size_t>(max_nn));
+    std::vector<std::size_t> found(m);
+    k_sqr_distances.resize(m);
+    if (m > 0) result.copy(found.data(), k_sqr_distances.data(), m, this->sorted_results_);
+    k_indices.resize(m);
+    for (std::size_t j = 0; j < m; ++j) k_indices[j] = ids_[found[j]];
+    return static_cast<int>(m);
+  }
+
+  std::size_t size() const { return ids_.size(); }
+
+ private:
+  using Index = flann::KDTreeSingleIndex<flann::L2_Simple<float>>;
+  static constexpr std::size_t kHeapThreshold = 250;  // flann's KNN_HEAP_THRESHOLD
+
+  /// A point as the tree's vector (3 floats for positions, 33 for FPFH, 352 for SHOT).
+  class Query {
+   public:
+    Query(const SerialKdTree& tree, const PointT& p) {
+      if (tree.dim_ > kInline) heap_.resize(static_cast<std::size_t>(tree.dim_));
+      float* out = data();
+      tree.repr_.vectorize(p, out);
+    }
+    float* data() { return heap_.empty() ? inline_ : heap_.data(); }
+
+   private:
+    static constexpr int kInline = 64;
+    float inline_[kInline];
+    std::vector<float> heap_;
+  };
+
+  /// Every point closer than sqrt(r2), in the order the tree visits them (flann's
+  /// RadiusResultSet, without its 1024-entry reservation per query).
+  struct Within final : flann::ResultSet<float> {
+    explicit Within(float r2) : r2(r2) {}
+    bool full() const override { return true; }
+    float worstDist() const override { return r2; }
+    void addPoint(float dist, std::size_t index) override {
+      if (dist < r2) hits.emplace_back(dist, index);
+    }
+    float r2;
+    std::vector<flann::DistanceIndex<float>> hits;
+  };
+
+  pcl::DefaultPointRepresentation<PointT> repr_;
+  int dim_ = repr_.getNumberOfDimensions();
+  flann::SearchParams params_{-1, 0.0F, true};  // exact search (eps 0), as pcl::KdTreeFLANN
+  std::vector<float> data_;
+  std::vector<pcl::index_t> ids_;  ///< tree index -> cloud index
+  std::unique_ptr<Index> index_;
+};
+
+}  // namespace mapmerge::align
