@@ -63,9 +63,9 @@ class KdTree : public ::testing::Test {
 
 TEST_F(KdTree, SameNeighboursAsPclOnARealMap) {
   ASSERT_GT(cloud_->size(), 10000U);
-  ma::SerialKdTree<Point> ours;
+  ma::SerialKdTree<Point> ours(true);  // sorted radius results, as KdTreeFLANN by default
   ours.setInputCloud(cloud_);
-  pcl::KdTreeFLANN<Point> pcls;  // sorted radius results, as ours by default
+  pcl::KdTreeFLANN<Point> pcls;
   pcls.setInputCloud(cloud_);
   std::size_t finite = 0;
   for (const auto& p : *cloud_) finite += std::isfinite(p.x) ? 1 : 0;
@@ -101,7 +101,7 @@ TEST_F(KdTree, SameNeighboursAsPclOnARealMap) {
 TEST_F(KdTree, UnsortedAndSubsetQueriesMatchPcl) {
   auto subset = std::make_shared<pcl::Indices>();
   for (std::size_t i = 0; i < cloud_->size(); i += 3) subset->push_back(static_cast<pcl::index_t>(i));
-  ma::SerialKdTree<Point> ours(false);
+  ma::SerialKdTree<Point> ours;  // unsorted by default
   ours.setInputCloud(cloud_, subset);
   pcl::KdTreeFLANN<Point> pcls(false);
   pcls.setInputCloud(cloud_, subset);

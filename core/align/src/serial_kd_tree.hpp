@@ -35,8 +35,10 @@ class SerialKdTree final : public pcl::search::Search<PointT> {
   using Base::nearestKSearch;
   using Base::radiusSearch;
 
-  /// `sorted`: radius results by increasing distance (k-nearest results always are).
-  explicit SerialKdTree(bool sorted = true) : Base("SerialKdTree", sorted) {}
+  /// `sorted`: radius results by increasing distance (k-nearest results always are). No
+  /// consumer in the pipeline needs that order, so the default is the tree's own visiting order,
+  /// as in the pcl::search::KdTree(false) that PCL's estimators build for themselves.
+  explicit SerialKdTree(bool sorted = false) : Base("SerialKdTree", sorted) {}
 
   /// Indexes the valid points of `cloud` (of `indices` when given); results are indices into
   /// `cloud`. Giving the cloud and indices it already indexes keeps the tree (PCL's estimators
@@ -99,12 +101,14 @@ class SerialKdTree final : public pcl::search::Search<PointT> {
     const auto r2 = static_cast<float>(radius * radius);
     Query q(*this, point);
     if (max_nn == 0 || max_nn >= ids_.size()) {
-      Within result(r2);
+      thread_local std::vector<flann::DistanceIndex<float>> hits;  // reused: no allocation a query
+      hits.clear();
+      Within result(r2, hits);
       index_->findNeighbors(result, q.data(), params_);
-      if (this->sorted_results_) std::sort(result.hits.begin(), result.hits.end());
-      k_indices.reserve(result.hits.size());
-      k_sqr_distances.reserve(result.hits.size());
-      for (const auto& h : result.hits) {
+      if (this->sorted_results_) std::sort(hits.begin(), hits.end());
+      k_indices.reserve(hits.size());
+      k_sqr_distances.reserve(hits.size());
+      for (const auto& h : hits) {
         k_indices.push_back(ids_[h.index_]);
         k_sqr_distances.push_back(h.dist_);
       }
@@ -144,16 +148,16 @@ class SerialKdTree final : public pcl::search::Search<PointT> {
   };
 
   /// Every point closer than sqrt(r2), in the order the tree visits them (flann's
-  /// RadiusResultSet, without its 1024-entry reservation per query).
+  /// RadiusResultSet, into a buffer kept by the thread instead of 1024 entries a query).
   struct Within final : flann::ResultSet<float> {
-    explicit Within(float r2) : r2(r2) {}
+    Within(float radius2, std::vector<flann::DistanceIndex<float>>& out) : r2(radius2), hits(out) {}
     bool full() const override { return true; }
     float worstDist() const override { return r2; }
     void addPoint(float dist, std::size_t index) override {
       if (dist < r2) hits.emplace_back(dist, index);
     }
     float r2;
-    std::vector<flann::DistanceIndex<float>> hits;
+    std::vector<flann::DistanceIndex<float>>& hits;
   };
 
   pcl::DefaultPointRepresentation<PointT> repr_;
