@@ -78,18 +78,12 @@ class SerialKdTree final : public pcl::search::Search<PointT> {
     k_sqr_distances.resize(n);
     if (n == 0) return 0;
     Query q(*this, point);
-    std::vector<std::size_t> found(n);
     if (n > kHeapThreshold) {  // as flann::Index::knnSearch chooses
       flann::KNNResultSet2<float> result(n);
-      index_->findNeighbors(result, q.data(), params_);
-      result.copy(found.data(), k_sqr_distances.data(), n, true);
-    } else {
-      flann::KNNSimpleResultSet<float> result(n);
-      index_->findNeighbors(result, q.data(), params_);
-      result.copy(found.data(), k_sqr_distances.data(), n, true);
+      return search(result, q, n, true, k_indices, k_sqr_distances);
     }
-    for (std::size_t j = 0; j < n; ++j) k_indices[j] = ids_[found[j]];
-    return static_cast<int>(n);
+    flann::KNNSimpleResultSet<float> result(n);
+    return search(result, q, n, true, k_indices, k_sqr_distances);
   }
 
   /// The points closer than `radius` [m]; with `max_nn` > 0 only the nearest `max_nn` of them.
@@ -115,14 +109,7 @@ class SerialKdTree final : public pcl::search::Search<PointT> {
       return static_cast<int>(k_indices.size());
     }
     flann::KNNRadiusResultSet<float> result(r2, max_nn);
-    index_->findNeighbors(result, q.data(), params_);
-    const std::size_t m = std::min(result.size(), static_cast<std::size_t>(max_nn));
-    std::vector<std::size_t> found(m);
-    k_sqr_distances.resize(m);
-    if (m > 0) result.copy(found.data(), k_sqr_distances.data(), m, this->sorted_results_);
-    k_indices.resize(m);
-    for (std::size_t j = 0; j < m; ++j) k_indices[j] = ids_[found[j]];
-    return static_cast<int>(m);
+    return search(result, q, max_nn, this->sorted_results_, k_indices, k_sqr_distances);
   }
 
   std::size_t size() const { return ids_.size(); }
@@ -130,6 +117,23 @@ class SerialKdTree final : public pcl::search::Search<PointT> {
  private:
   using Index = flann::KDTreeSingleIndex<flann::L2_Simple<float>>;
   static constexpr std::size_t kHeapThreshold = 250;  // flann's KNN_HEAP_THRESHOLD
+
+  class Query;
+
+  /// Runs one query into a FLANN result set holding at most `capacity` and copies out what it
+  /// found as cloud indices; returns how many.
+  template <class ResultSet>
+  int search(ResultSet& result, Query& q, std::size_t capacity, bool sorted, pcl::Indices& k_indices,
+             std::vector<float>& k_sqr_distances) const {
+    std::vector<std::size_t> found(capacity);
+    index_->findNeighbors(result, q.data(), params_);
+    const std::size_t n = std::min(result.size(), capacity);
+    k_sqr_distances.resize(n);
+    if (n > 0) result.copy(found.data(), k_sqr_distances.data(), n, sorted);
+    k_indices.resize(n);
+    for (std::size_t j = 0; j < n; ++j) k_indices[j] = ids_[found[j]];
+    return static_cast<int>(n);
+  }
 
   /// A point as the tree's vector (3 floats for positions, 33 for FPFH, 352 for SHOT).
   class Query {
