@@ -7,6 +7,7 @@
 #include <fastdds/dds/domain/qos/DomainParticipantQos.hpp>
 #include <fastdds/rtps/common/Locator.h>
 #include <fastrtps/utils/IPLocator.h>
+#include <fastrtps/xmlparser/XMLProfileManager.h>
 
 namespace mapmerge::wire {
 namespace dds = eprosima::fastdds::dds;
@@ -31,10 +32,18 @@ void load_xml(const char* xml, const std::string& what) {
 }
 
 /// Loads the embedded profiles once per process, before any default QoS is read
-/// (Fast DDS silently ignores profiles loaded after get_default_participant_qos()).
+/// (Fast DDS silently ignores profiles loaded after get_default_participant_qos()). A process
+/// may hold two copies of this library (a program linking it and libmapmerge_client.so): the
+/// factory is one per process, so a copy finding the profiles there leaves them be (loading them
+/// again makes Fast DDS log an error for every profile).
 void load_embedded_profiles() {
   static std::once_flag once;
   std::call_once(once, [] {
+    eprosima::fastrtps::ParticipantAttributes loaded;
+    if (eprosima::fastrtps::xmlparser::XMLProfileManager::fillParticipantAttributes(
+            "mapmerge_default", loaded, /*log_error=*/false) == eprosima::fastrtps::xmlparser::XMLP_ret::XML_OK) {
+      return;
+    }
     load_xml(embedded::kFastddsQos, "mapmerge QoS");
     load_xml(embedded::kFastddsLocal, "local");
     load_xml(embedded::kFastddsDefault, "default");
