@@ -413,6 +413,48 @@ TEST_F(GlobalFusionTest, DifferencesReadOffTheBinaryBodiesEqualTheTreeWalk) {
   expect_same_voxels(*with_bodies.tree(), *trees_only.tree());
 }
 
+TEST_F(GlobalFusionTest, OneThreadOrSeveralGiveTheSameBytes) {
+  // set() shares a map's cubes out over the global map's blocks, written on several threads.
+  // After every step of the same changes (received as checked payloads, so fused off their
+  // bytes: whole maps in runs, grown ones by difference), one thread's global map and four
+  // threads' must be the same bytes with the same changed blocks.
+  const double res = world_->getResolution();
+  const std::vector<FleetState> steps = change_steps(*world_);
+  GlobalFusion one(res), four(res);
+  one.set_threads(1);
+  four.set_threads(4);
+  ASSERT_EQ(one.threads(), 1U);
+  ASSERT_EQ(four.threads(), 4U);
+  std::set<std::string> in;
+  for (std::size_t k = 0; k < steps.size(); ++k) {
+    std::set<std::string> now;
+    for (const auto& [id, m] : steps[k]) {
+      const std::shared_ptr<const HeldMap> held = checked(*m.first);
+      const GlobalFuseResult a = one.set(id, held, m.second);
+      const GlobalFuseResult b = four.set(id, held, m.second);
+      EXPECT_TRUE(a.ok && b.ok) << "step " << k << " " << id;
+      EXPECT_EQ(a.cubes, b.cubes) << "step " << k << " " << id;
+      now.insert(id);
+    }
+    for (const auto& id : in) {
+      if (now.count(id) == 0) {
+        one.remove(id);
+        four.remove(id);
+      }
+    }
+    in = now;
+    const auto a = one.encode();
+    const auto b = four.encode();
+    EXPECT_GT(a.nodes, 0U) << "step " << k;
+    EXPECT_EQ(a.nodes, b.nodes) << "step " << k;
+    EXPECT_TRUE(a.bt == b.bt) << "step " << k << ": one thread's global map and four threads' differ";
+    ASSERT_EQ(a.patches.has_value(), b.patches.has_value()) << "step " << k;
+    if (a.patches) {
+      EXPECT_EQ(a.patches->size(), b.patches->size()) << "step " << k;
+    }
+  }
+}
+
 TEST_F(GlobalFusionTest, EncodedMapIsTheMaximumLikelihoodOfTheClampedSums) {
   const double res = world_->getResolution();
   const Robot r2 = cut(*world_, "r2", -8, 6, 1.1);

@@ -2,13 +2,17 @@
 
 #include <algorithm>
 #include <array>
+#include <atomic>
 #include <cmath>
 #include <cstring>
 #include <functional>
+#include <mutex>
+#include <thread>
 #include <unordered_map>
 
 #include "leaf_mapper.hpp"
 #include "mapmerge/map/map_io.hpp"
+#include "parallel.hpp"
 #include "sum_tree.hpp"
 #include "tree_scan.hpp"
 
@@ -315,6 +319,79 @@ bool whole_body(const HeldMap& map, bool remove, double target_res, const FuseCo
 /// Packed votes of source leaves finer than the target's voxels: the largest per voxel.
 using FineVotes = std::unordered_map<octomap::OcTreeKey, float, octomap::OcTreeKey::KeyHash>;
 
+/// A parallel add's sink: one thread's writer, inside the block its mapper's window is on.
+struct BlockSink {
+  detail::SumTree::BlockWriter& writer;
+  void apply(const octomap::OcTreeKey& key, unsigned level, std::int64_t delta) {
+    writer.add(key, level, delta);
+  }
+};
+
+/// Fewer cubes than this are placed on the calling thread (a thread start costs more).
+constexpr std::size_t kParallelCubes = 2048;
+
+/// Places `cubes` (a robot map's frame, moved by `T`) into `sums`. With several threads and
+/// enough cubes, the target blocks (SumTree::kBlockDepth subtrees) they reach are shared out:
+/// each block is written by one thread with its own descent and node count, so the sums are
+/// the same as one thread's (integer sums in another order) and so are the encoded bytes.
+void map_cubes(detail::SumTree& sums, const Eigen::Matrix4d& T, double res, const std::vector<ChangedCube>& cubes,
+               unsigned threads, FuseResult& counts) {
+  SumSink sink{sums};
+  detail::LeafMapper<SumSink, std::int64_t> mapper(T, res, sink, counts);
+  if (threads < 2 || cubes.size() < kParallelCubes) {
+    for (const ChangedCube& cube : cubes) mapper.add_cube(cube.centre, cube.size, cube.delta);
+    return;
+  }
+  // Which blocks each cube may reach (its key box, in blocks).
+  constexpr unsigned kBlockLevel = kTreeDepth - detail::SumTree::kBlockDepth;
+  std::unordered_map<std::uint64_t, std::vector<std::uint32_t>> by_block;
+  for (std::size_t i = 0; i < cubes.size(); ++i) {
+    int lo[3];
+    int hi[3];
+    if (!mapper.key_bounds(cubes[i].centre, cubes[i].size, lo, hi)) continue;
+    for (int z = lo[2] >> kBlockLevel; z <= hi[2] >> kBlockLevel; ++z)
+      for (int y = lo[1] >> kBlockLevel; y <= hi[1] >> kBlockLevel; ++y)
+        for (int x = lo[0] >> kBlockLevel; x <= hi[0] >> kBlockLevel; ++x)
+          by_block[std::uint64_t(x) | std::uint64_t(y) << 16 | std::uint64_t(z) << 32].push_back(
+              static_cast<std::uint32_t>(i));
+  }
+  struct Job {
+    std::uint64_t block;
+    const std::vector<std::uint32_t>* cubes;
+    bool changed = false;
+  };
+  std::vector<Job> jobs;
+  jobs.reserve(by_block.size());
+  for (const auto& [block, members] : by_block) jobs.push_back({block, &members});
+  // Most cubes first: the longest jobs start early, the short ones fill in.
+  std::sort(jobs.begin(), jobs.end(), [](const Job& a, const Job& b) {
+    return a.cubes->size() != b.cubes->size() ? a.cubes->size() > b.cubes->size() : a.block < b.block;
+  });
+  for (const Job& job : jobs) sums.prepare_block(job.block);
+  std::atomic<std::size_t> next{0};
+  std::mutex done;
+  auto work = [&] {
+    detail::SumTree::BlockWriter writer(sums);
+    BlockSink block_sink{writer};
+    FuseResult mine;
+    detail::LeafMapper<BlockSink, std::int64_t> windowed(T, res, block_sink, mine);
+    for (std::size_t k = next++; k < jobs.size(); k = next++) {
+      windowed.set_window(patch_block_key(jobs[k].block), kBlockLevel);
+      const std::size_t before = mine.voxel_updates + mine.block_updates;
+      for (const std::uint32_t i : *jobs[k].cubes) windowed.add_cube(cubes[i].centre, cubes[i].size, cubes[i].delta);
+      jobs[k].changed = mine.voxel_updates + mine.block_updates != before;
+    }
+    std::lock_guard<std::mutex> lock(done);
+    sums.account_writer(writer);
+    counts.voxel_updates += mine.voxel_updates;
+    counts.block_updates += mine.block_updates;
+  };
+  detail::run_parallel(std::min<unsigned>(threads, static_cast<unsigned>((jobs.size() + 3) / 4)), work);
+  for (const Job& job : jobs) {
+    if (job.changed) sums.note_block(job.block);
+  }
+}
+
 }  // namespace
 
 GlobalFusion::GlobalFusion(double resolution, const FuseConfig& config)
@@ -324,7 +401,10 @@ GlobalFusion::GlobalFusion(double resolution, const FuseConfig& config)
   }
   sums_ = std::make_unique<detail::SumTree>(resolution);
   encoded_ = std::make_unique<detail::EncodedBlocks>();
+  threads_ = std::max(1U, std::min(4U, std::thread::hardware_concurrency()));
 }
+
+void GlobalFusion::set_threads(unsigned threads) { threads_ = std::max(1U, threads); }
 
 GlobalFusion::~GlobalFusion() = default;
 
@@ -361,11 +441,19 @@ void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stat
   SumSink sink{*sums_};
   detail::LeafMapper<SumSink, std::int64_t> mapper(T, resolution_, sink, counts);
   double work = 0.0;
+  // The body's cubes go to map_cubes() in runs of kRun (memory stays bounded; each run is
+  // spread over the threads).
+  constexpr std::size_t kRun = std::size_t{1} << 16;
+  std::vector<ChangedCube> run;
   const auto add = [&](const ChangedCube& cube) {
     ++stats.cubes;
-    mapper.add_cube(cube.centre, cube.size, cube.delta);
+    run.push_back(cube);
+    if (run.size() < kRun) return;
+    map_cubes(*sums_, T, resolution_, run, threads_, counts);
+    run.clear();
   };
   if (whole_body(*entry.map, sign < 0, resolution_, config_, add, work, body_checked)) {  // no tree built
+    map_cubes(*sums_, T, resolution_, run, threads_, counts);
     stats.voxel_updates += counts.voxel_updates;
     stats.block_updates += counts.block_updates;
     return;
@@ -420,9 +508,7 @@ bool GlobalFusion::add_difference(const Entry& before, const Entry& after, Globa
     return false;
   }
   FuseResult counts;
-  SumSink sink{*sums_};
-  detail::LeafMapper<SumSink, std::int64_t> mapper(after.T_global_robot, resolution_, sink, counts);
-  for (const ChangedCube& cube : cubes) mapper.add_cube(cube.centre, cube.size, cube.delta);
+  map_cubes(*sums_, after.T_global_robot, resolution_, cubes, threads_, counts);
   stats.cubes += cubes.size();
   stats.voxel_updates += counts.voxel_updates;
   stats.block_updates += counts.block_updates;

@@ -57,10 +57,10 @@ class BodyWriter {
 
   /// Writes the body; `changed` lists the blocks whose sums changed (if known), which are written
   /// on several threads first when there are enough of them.
-  std::size_t run(const std::optional<std::vector<std::uint64_t>>& changed) {
+  std::size_t run(const std::optional<std::vector<std::uint64_t>>& changed, unsigned threads = 1) {
     sums_.forget_path();
     detail::SumNode* root = sums_.root_node();
-    if (root != nullptr && changed) write_blocks_at_once(root, *changed);
+    if (root != nullptr && changed) write_blocks_at_once(root, *changed, threads);
     State s = State::kUnknown;
     if (root != nullptr) s = write(root, octomap::OcTreeKey(32768, 32768, 32768), 0);
     sums_.account(deleted_);
@@ -84,11 +84,10 @@ class BodyWriter {
 
  private:
   /// Changed blocks are independent subtrees, each one contiguous run of the body: with at least
-  /// kParallelBlocks of them they are written on up to 4 threads (each with its own buffer and
+  /// kParallelBlocks of them they are written on up to `threads` threads (each with its own buffer and
   /// deletion count), and write() takes their bytes as it would those of unchanged blocks.
   static constexpr std::size_t kParallelBlocks = 8;
-  void write_blocks_at_once(detail::SumNode* root, const std::vector<std::uint64_t>& ids) {
-    const unsigned threads = std::min(4U, std::thread::hardware_concurrency());
+  void write_blocks_at_once(detail::SumNode* root, const std::vector<std::uint64_t>& ids, unsigned threads) {
     if (threads < 2 || ids.size() < kParallelBlocks) return;
     struct Job {
       std::uint64_t id;
@@ -272,7 +271,7 @@ GlobalFusion::Encoded GlobalFusion::encode() {
   constexpr std::size_t kMaxPatchBlocks = std::size_t{1} << 16;
   Encoded e;
   const auto changed = sums_->changed_blocks(kMaxPatchBlocks);  // before the writer forgets them
-  e.nodes = BodyWriter(*sums_, *encoded_, e.body).run(changed);
+  e.nodes = BodyWriter(*sums_, *encoded_, e.body).run(changed, threads_);
   if (changed) e.patches = patches_of(*sums_, *encoded_, *changed, e.body.size());
   const std::string header = bt_header(e.nodes, resolution_);
   e.bt.reserve(header.size() + e.body.size());

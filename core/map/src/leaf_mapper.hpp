@@ -38,13 +38,34 @@ class LeafMapper {
   /// Adds `delta` to every target voxel whose centre lies in the cube (centre `c`, edge `size`,
   /// source frame). Half-open bounds give each target voxel to exactly one source leaf.
   void add_cube(const Eigen::Vector3d& c, double size, Delta delta) {
+    int lo[3];
+    int hi[3];
+    if (!key_bounds(c, size, lo, hi)) return;
     c_ = c;
     h_ = 0.5 * size;
     delta_ = delta;
+    for (int i = 0; i < 3; ++i) {  // the window's part (everything unless set_window())
+      lo[i] = std::max(lo[i], window_lo_[i]);
+      hi[i] = std::min(hi[i], window_hi_[i]);
+      if (lo[i] > hi[i]) return;
+    }
+    // Largest aligned target block that may fit inside the cube (and inside the window).
+    unsigned level = 0;
+    while (level < max_level_ && static_cast<double>(2U << level) * res_ <= size * (1 + 1e-9)) ++level;
+    for (int x = lo[0] >> level; x <= hi[0] >> level; ++x) {
+      for (int y = lo[1] >> level; y <= hi[1] >> level; ++y) {
+        for (int z = lo[2] >> level; z <= hi[2] >> level; ++z) {
+          visit(x << level, y << level, z << level, level);
+        }
+      }
+    }
+  }
+
+  /// The target keys whose voxel centres may lie in the cube (centre `c`, edge `size`, source
+  /// frame), clipped to the key space: false when none is left. Counts clipped leaves.
+  bool key_bounds(const Eigen::Vector3d& c, double size, int lo[3], int hi[3]) {
     const Eigen::Vector3d ct = R_ * c + t_;
-    const Eigen::Vector3d e = h_ * abs_R_row_sum_;
-    int lo[3];
-    int hi[3];
+    const Eigen::Vector3d e = 0.5 * size * abs_R_row_sum_;
     bool clipped = false;
     for (int i = 0; i < 3; ++i) {
       lo[i] = static_cast<int>(std::ceil((ct[i] - e[i]) / res_ + (kKeyCentre - 0.5) - 1e-9));
@@ -54,20 +75,22 @@ class LeafMapper {
       hi[i] = std::min(hi[i], kKeyMax);
       if (lo[i] > hi[i]) {
         ++stats_.leaves_clipped;
-        return;
+        return false;
       }
     }
     stats_.leaves_clipped += clipped;
-    // Largest aligned target block that may fit inside the cube.
-    unsigned level = 0;
-    while (level < 15 && static_cast<double>(2U << level) * res_ <= size * (1 + 1e-9)) ++level;
-    for (int x = lo[0] >> level; x <= hi[0] >> level; ++x) {
-      for (int y = lo[1] >> level; y <= hi[1] >> level; ++y) {
-        for (int z = lo[2] >> level; z <= hi[2] >> level; ++z) {
-          visit(x << level, y << level, z << level, level);
-        }
-      }
+    return true;
+  }
+
+  /// From now on add_cube() updates only the aligned block of 2^level voxels per side at
+  /// `first` (its smallest key), in steps of at most that block: mappers of disjoint windows
+  /// may run at once.
+  void set_window(const octomap::OcTreeKey& first, unsigned level) {
+    for (int i = 0; i < 3; ++i) {
+      window_lo_[i] = first[i];
+      window_hi_[i] = first[i] + (1 << level) - 1;
     }
+    max_level_ = level;
   }
 
  private:
@@ -119,6 +142,9 @@ class LeafMapper {
   Eigen::Vector3d c_;
   double h_ = 0.0;
   Delta delta_{};
+  int window_lo_[3] = {0, 0, 0};
+  int window_hi_[3] = {kKeyMax, kKeyMax, kKeyMax};
+  unsigned max_level_ = 15;
 };
 
 inline std::string check_rigid(const Eigen::Matrix4d& T, double tolerance) {

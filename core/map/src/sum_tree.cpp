@@ -6,59 +6,98 @@
 
 namespace mapmerge::detail {
 
-SumNode* SumTree::new_child(SumNode* node, unsigned i, std::int64_t value) {
-  SumNode* child = createNodeChild(node, i);  // a SumNode() holds 0
-  child->setValue(value);
+SumNode* SumTree::new_child(Cursor& cursor, SumNode* node, unsigned i, std::int64_t value) {
+  // As OcTreeBaseImpl::createNodeChild, but counted in the cursor: writers of disjoint blocks
+  // may create nodes at once.
+  auto& children = node->*NodeInternals<SumNode>::kChildren;
+  if (children == nullptr) {
+    children = new octomap::AbstractOcTreeNode*[8];
+    std::fill_n(children, 8, nullptr);
+  }
+  auto* child = new SumNode(value);
+  children[i] = child;
+  ++cursor.created;
   return child;
 }
 
-SumNode* SumTree::descend(const octomap::OcTreeKey& key, unsigned depth, bool& fresh) {
+SumNode* SumTree::descend(Cursor& cursor, const octomap::OcTreeKey& key, unsigned depth, bool& fresh) {
   fresh = false;
   if (root == nullptr) {
     root = new SumNode(0);
     ++tree_size;
     size_changed = true;
-    path_depth_ = 0;
+    cursor.depth = 0;
     fresh = true;
   }
-  path_[0] = root;
+  cursor.path[0] = root;
   // The cached path is shared down to the level of the highest bit where the keys differ.
-  const unsigned diff = static_cast<unsigned>((key[0] ^ path_key_[0]) | (key[1] ^ path_key_[1]) |
-                                              (key[2] ^ path_key_[2]));
+  const unsigned diff = static_cast<unsigned>((key[0] ^ cursor.key[0]) | (key[1] ^ cursor.key[1]) |
+                                              (key[2] ^ cursor.key[2]));
   unsigned shared = kTreeDepth;
   for (unsigned bits = diff; bits != 0; bits >>= 1) --shared;
-  const unsigned d = std::min({shared, depth, path_depth_});
-  SumNode* node = path_[d];
+  const unsigned d = std::min({shared, depth, cursor.depth});
+  SumNode* node = cursor.path[d];
   for (unsigned level = d; level < depth; ++level) {
     const unsigned pos = octomap::computeChildIdx(key, static_cast<int>(kTreeDepth - 1 - level));
     if (nodeChildExists(node, pos)) {
       node = getNodeChild(node, pos);
     } else if (!fresh && !nodeHasChildren(node) && node->getValue() != 0) {
-      expandNode(node);  // a uniform block: its children inherit its sum
+      // A uniform block: its children inherit its sum (OcTreeBaseImpl::expandNode).
+      for (unsigned k = 0; k < 8; ++k) new_child(cursor, node, k, node->getValue());
       node = getNodeChild(node, pos);
     } else {
-      node = new_child(node, pos, 0);  // no evidence yet
+      node = new_child(cursor, node, pos, 0);  // no evidence yet
       fresh = true;
     }
-    path_[level + 1] = node;
+    cursor.path[level + 1] = node;
   }
-  path_key_ = key;
-  path_depth_ = depth;
+  cursor.key = key;
+  cursor.depth = depth;
   return node;
 }
 
-void SumTree::add_subtree(SumNode* node, std::int64_t delta) {
-  if (!nodeHasChildren(node)) {
+void SumTree::add_subtree(Cursor& cursor, SumNode* node, std::int64_t delta) {
+  const auto& children = node->*NodeInternals<SumNode>::kChildren;
+  if (children == nullptr) {
     node->setValue(node->getValue() + delta);
     return;
   }
   for (unsigned i = 0; i < 8; ++i) {
-    if (nodeChildExists(node, i)) {
-      add_subtree(getNodeChild(node, i), delta);  // depth <= 16: bounded recursion
+    if (children[i] != nullptr) {
+      add_subtree(cursor, static_cast<SumNode*>(children[i]), delta);  // depth <= 16: bounded recursion
     } else {
-      new_child(node, i, delta);
+      new_child(cursor, node, i, delta);
     }
   }
+}
+
+void SumTree::add_at(Cursor& cursor, const octomap::OcTreeKey& key, unsigned level, std::int64_t delta) {
+  bool fresh = false;
+  SumNode* node = descend(cursor, key, kTreeDepth - level, fresh);
+  if (fresh) {
+    node->setValue(delta);
+  } else {
+    add_subtree(cursor, node, delta);
+  }
+}
+
+void SumTree::count_created(Cursor& cursor) {
+  if (cursor.created == 0) return;
+  tree_size += cursor.created;
+  size_changed = true;
+  cursor.created = 0;
+}
+
+void SumTree::prepare_block(std::uint64_t block) {
+  bool fresh = false;
+  descend(cursor_, patch_block_key(block), kBlockDepth, fresh);
+  count_created(cursor_);
+}
+
+void SumTree::account_writer(const BlockWriter& writer) {
+  tree_size += writer.cursor_.created;
+  size_changed = true;
+  cursor_.depth = 0;  // writers may have expanded nodes on add()'s cached path
 }
 
 namespace {
@@ -123,13 +162,8 @@ void SumTree::forget_changes() {
 
 void SumTree::add(const octomap::OcTreeKey& key, unsigned level, std::int64_t delta) {
   note_change(key, level);
-  bool fresh = false;
-  SumNode* node = descend(key, kTreeDepth - level, fresh);
-  if (fresh) {
-    node->setValue(delta);
-  } else {
-    add_subtree(node, delta);
-  }
+  add_at(cursor_, key, level, delta);
+  count_created(cursor_);
 }
 
 void SumTree::drop_child(SumNode* parent, unsigned i) {
@@ -160,7 +194,7 @@ bool SumTree::prune(SumNode* node, std::size_t& deleted) {
 void SumTree::drop_all() {
   clear();
   all_changed_ = true;
-  path_depth_ = 0;
+  cursor_.depth = 0;
 }
 
 }  // namespace mapmerge::detail

@@ -11,11 +11,13 @@
 #include <optional>
 #include <unordered_map>
 #include <unordered_set>
+#include <new>
 #include <utility>
 #include <vector>
 
 #include <octomap/OcTreeBase.h>
 #include <octomap/OcTreeDataNode.h>
+#include <tbb/scalable_allocator.h>
 
 #include "mapmerge/map/global_delta.hpp"
 
@@ -26,6 +28,16 @@ class SumNode : public octomap::OcTreeDataNode<std::int64_t> {
  public:
   SumNode() : octomap::OcTreeDataNode<std::int64_t>(0) {}
   explicit SumNode(std::int64_t value) : octomap::OcTreeDataNode<std::int64_t>(value) {}
+#ifndef __SANITIZE_ADDRESS__
+  // Nodes come from TBB's scalable allocator: GlobalFusion creates them on several threads and
+  // the encoder frees them on others; with glibc's arenas, a node made on a helper thread and
+  // freed on another cost the encoding twice as long.
+  static void* operator new(std::size_t size) {
+    if (void* p = scalable_malloc(size)) return p;
+    throw std::bad_alloc();
+  }
+  static void operator delete(void* p) noexcept { scalable_free(p); }
+#endif
   /// Deletes child `i` (a leaf, or emptied), as OcTreeBaseImpl::deleteNodeChild but leaving the
   /// tree's node count to SumTree::account().
   void delete_child(unsigned i) {
@@ -67,6 +79,18 @@ class SumTree : public octomap::OcTreeBase<SumNode> {
 
   /// Adds `delta` to every voxel of the aligned block of 2^level voxels per side holding `key`.
   void add(const octomap::OcTreeKey& key, unsigned level, std::int64_t delta);
+
+  /// Adds into one block on one thread, while other writers add into other blocks: the nodes
+  /// above the blocks exist already (prepare_block()) and are only read; the writer's nodes are
+  /// counted by it (account_writer()) and its changes noted by the caller (note_block()).
+  class BlockWriter;
+  /// Makes the node at kBlockDepth holding `block` exist (creating its path, expanding uniform
+  /// blocks above it), so BlockWriters can add below it at once. Not thread-safe.
+  void prepare_block(std::uint64_t block);
+  /// Adds a writer's node count to the tree's size once its thread is done. Not thread-safe.
+  void account_writer(const BlockWriter& writer);
+  /// Notes that voxels of `block` changed (for changed() and the encoder). Not thread-safe.
+  void note_block(std::uint64_t block) { note_change(patch_block_key(block), 0); }
   SumNode* root_node() { return root; }
   const SumNode* root_node() const { return root; }
   /// Deletes child `i` of `parent` with its whole subtree.
@@ -78,28 +102,51 @@ class SumTree : public octomap::OcTreeBase<SumNode> {
   void account(std::size_t deleted) {
     tree_size -= deleted;
     size_changed = true;
-    path_depth_ = 0;
+    cursor_.depth = 0;
   }
   /// Deletes everything.
   void drop_all();
   /// Forgets the cached descent (call before changing the structure other than by add()).
-  void forget_path() { path_depth_ = 0; }
+  void forget_path() { cursor_.depth = 0; }
 
  private:
-  SumNode* descend(const octomap::OcTreeKey& key, unsigned depth, bool& fresh);
-  SumNode* new_child(SumNode* node, unsigned i, std::int64_t value);
-  void add_subtree(SumNode* node, std::int64_t delta);
+  /// One adder's last descent (its nodes by depth, shared by the next one as far as the keys
+  /// agree) and the nodes it created, not yet in tree_size.
+  struct Cursor {
+    std::array<SumNode*, 17> path{};
+    octomap::OcTreeKey key;
+    unsigned depth = 0;
+    std::size_t created = 0;
+  };
+  SumNode* descend(Cursor& cursor, const octomap::OcTreeKey& key, unsigned depth, bool& fresh);
+  static SumNode* new_child(Cursor& cursor, SumNode* node, unsigned i, std::int64_t value);
+  static void add_subtree(Cursor& cursor, SumNode* node, std::int64_t delta);
+  void add_at(Cursor& cursor, const octomap::OcTreeKey& key, unsigned level, std::int64_t delta);
+  /// Puts a cursor's created nodes into tree_size.
+  void count_created(Cursor& cursor);
 
   void note_change(const octomap::OcTreeKey& key, unsigned level);
 
-  std::array<SumNode*, 17> path_{};  ///< nodes of the last descent, by depth
+  Cursor cursor_;  ///< add()'s
   std::unordered_set<std::uint64_t> changed_blocks_;  ///< blocks touched by add()
   std::unordered_set<std::uint64_t> changed_regions_;  ///< adds of more than a block (level, key >> level)
   std::uint32_t region_levels_ = 0;  ///< bit per level that changed_regions_ holds
   bool all_changed_ = true;          ///< nothing encoded yet, or everything dropped
   std::uint64_t last_block_ = ~std::uint64_t{0};  ///< the block noted last (adds come in runs)
-  octomap::OcTreeKey path_key_;
-  unsigned path_depth_ = 0;
+};
+
+class SumTree::BlockWriter {
+ public:
+  explicit BlockWriter(SumTree& tree) : tree_(tree) {}
+  /// SumTree::add() for an aligned block inside a prepared block (level <= its level).
+  void add(const octomap::OcTreeKey& key, unsigned level, std::int64_t delta) {
+    tree_.add_at(cursor_, key, level, delta);
+  }
+
+ private:
+  friend class SumTree;
+  SumTree& tree_;
+  Cursor cursor_;
 };
 
 /// The encoder's bytes of one block (BodyWriter's output for that subtree), its maximum-

@@ -83,6 +83,10 @@ class GlobalFusion {
   GlobalFuseResult set(const std::string& robot, std::shared_ptr<const octomap::OcTree> map,
                        const Eigen::Matrix4d& T_global_robot,
                        std::shared_ptr<const std::vector<std::uint8_t>> binary_body = nullptr);
+  /// Threads set() and encode() may work on at once (default: one per core, at most 4; 1: the
+  /// calling thread only). The sums and the bytes do not depend on it.
+  void set_threads(unsigned threads);
+  unsigned threads() const { return threads_; }
   /// Takes `robot`'s contribution out (no-op for a robot not fused).
   void remove(const std::string& robot);
 
@@ -103,7 +107,7 @@ class GlobalFusion {
   /// The bytes of every block (a subtree of 2^5 voxels a side) are kept, and a block none of
   /// whose voxels changed since the last encode() is copied, not walked: encoding after an
   /// update costs O(changed blocks + their count), plus copying the bytes. Eight or more changed
-  /// blocks are written on up to 4 threads (they are disjoint subtrees; same bytes).
+  /// blocks are written on up to threads() threads (disjoint subtrees; same bytes).
   ///
   /// `patches`: the blocks that changed since the previous encode(), which turn the tree decoded
   /// from that encoding into the one decoded from this (apply_block_patches); none after the
@@ -137,6 +141,7 @@ class GlobalFusion {
 
   double resolution_;
   FuseConfig config_;
+  unsigned threads_ = 1;
   std::unique_ptr<detail::SumTree> sums_;
   std::unique_ptr<detail::EncodedBlocks> encoded_;  ///< the last encode()'s blocks
   std::map<std::string, Entry> robots_;
