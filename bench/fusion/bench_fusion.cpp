@@ -3,6 +3,7 @@
 // against GlobalFusion's incremental update of one robot (its map grown, same pose), a pose
 // change, and the outputs (encode, provenance). CPU time of this thread, so the numbers hold on
 // a loaded machine. Memory: the global sums and a robot's decoded map against its payload.
+#include <chrono>
 #include <algorithm>
 #include <cstdio>
 #include <ctime>
@@ -21,10 +22,9 @@ using namespace mapmerge;
 
 namespace {
 
-double cpu_ms() {
-  timespec t{};
-  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
-  return static_cast<double>(t.tv_sec) * 1e3 + static_cast<double>(t.tv_nsec) / 1e6;
+/// Wall time [ms]: GlobalFusion may work on several threads (run on an idle machine).
+double wall_ms() {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now().time_since_epoch()).count();
 }
 
 struct Robot {
@@ -67,7 +67,7 @@ std::vector<Robot> make_fleet(const octomap::OcTree& world, int n, double share,
 }  // namespace
 
 int main(int argc, char** argv) {
-  CLI::App app{"global fusion bench: full re-fusion vs incremental update (CPU time)"};
+  CLI::App app{"global fusion bench: full re-fusion vs incremental update (wall time)"};
   std::string map = "fr_079.bt";
   std::vector<int> sizes{2, 4, 8, 16};
   double share = 0.45, grow = 1.0;
@@ -75,58 +75,63 @@ int main(int argc, char** argv) {
   app.add_option("--robots", sizes, "fleet sizes")->delimiter(',');
   app.add_option("--strip-share", share, "share of the map's length each robot sees");
   app.add_option("--grow", grow, "how far a robot's map grows in one update [m]");
+  unsigned threads = 0;
+  app.add_option("--threads", threads, "GlobalFusion's threads (0: its default)");
   CLI11_PARSE(app, argc, argv);
   const auto world = read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/" + map);
   const double res = world->getResolution();
-  std::printf("map %s, a robot's map grows by %.1f m per update; CPU ms\n", map.c_str(), grow);
+  const unsigned used = threads != 0 ? threads : GlobalFusion(world->getResolution()).threads();
+  std::printf("map %s, a robot's map grows by %.1f m per update; wall ms, GlobalFusion on %u thread(s)\n",
+              map.c_str(), grow, used);
   std::printf("| N | full re-fusion + prune + encode | GlobalFusion all | update (diff of trees) | update (diff of bodies) | encode after it | pose change | encode after it | encode unchanged | provenance | decode robot | sums MB | robot tree MB | robot payload MB |\n");
   std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
   for (const int n : sizes) {
     const auto fleet = make_fleet(*world, n, share, grow);
     std::vector<MapInGlobal> placed;
     for (const auto& r : fleet) placed.emplace_back(r.map.get(), r.T_global_robot);
-    double t = cpu_ms();
+    double t = wall_ms();
     auto full = fuse_maps(placed, res);
     const auto full_bytes = encode_map(*full, Encoding::kOctomapBt);
-    const double t_full = cpu_ms() - t;
+    const double t_full = wall_ms() - t;
     full.reset();
 
     GlobalFusion g(res);
-    t = cpu_ms();
+    g.set_threads(used);
+    t = wall_ms();
     for (std::size_t i = 0; i < fleet.size(); ++i)
       g.set("r" + std::to_string(i), fleet[i].map, fleet[i].T_global_robot, fleet[i].map_body);
     g.encode();
-    const double t_all = cpu_ms() - t;
+    const double t_all = wall_ms() - t;
     const std::size_t k = fleet.size() / 2;  // a robot in the middle of the fleet
-    t = cpu_ms();
+    t = wall_ms();
     const GlobalFuseResult up = g.set("r" + std::to_string(k), fleet[k].grown, fleet[k].T_global_robot);  // no body
-    const double t_update = cpu_ms() - t;
+    const double t_update = wall_ms() - t;
     g.set("r" + std::to_string(k), fleet[k].map, fleet[k].T_global_robot, fleet[k].map_body);  // back (tree walk)
-    t = cpu_ms();
+    t = wall_ms();
     const GlobalFuseResult up_bytes =
         g.set("r" + std::to_string(k), fleet[k].grown, fleet[k].T_global_robot, fleet[k].grown_body);
-    const double t_update_bytes = cpu_ms() - t;
-    t = cpu_ms();
+    const double t_update_bytes = wall_ms() - t;
+    t = wall_ms();
     const auto encoded_update = g.encode();  // the blocks the grown map changed, the rest copied
-    const double t_encode_update = cpu_ms() - t;
+    const double t_encode_update = wall_ms() - t;
     Eigen::Matrix4d moved = fleet[k].T_global_robot;
     moved(0, 3) += 0.02;
-    t = cpu_ms();
+    t = wall_ms();
     g.set("r" + std::to_string(k), fleet[k].grown, moved);
-    const double t_pose = cpu_ms() - t;
-    t = cpu_ms();
+    const double t_pose = wall_ms() - t;
+    t = wall_ms();
     const auto encoded = g.encode();  // every block of the moved robot written again
-    const double t_encode = cpu_ms() - t;
-    t = cpu_ms();
+    const double t_encode = wall_ms() - t;
+    t = wall_ms();
     const auto again = g.encode();  // nothing changed: every block copied
-    const double t_encode_again = cpu_ms() - t;
-    t = cpu_ms();
+    const double t_encode_again = wall_ms() - t;
+    t = wall_ms();
     const Provenance p = g.provenance();
-    const double t_prov = cpu_ms() - t;
+    const double t_prov = wall_ms() - t;
     const auto payload = encode_map(*fleet[k].grown, Encoding::kOctomapBt);
-    t = cpu_ms();
+    t = wall_ms();
     const DecodeResult d = decode_map(payload, Encoding::kOctomapBt, DecodeLimits{});
-    const double t_decode = cpu_ms() - t;
+    const double t_decode = wall_ms() - t;
     std::printf("| %d | %.0f | %.0f | %.1f (%s, %zu cubes) | %.1f (%s) | %.1f (%zu kB) | %.0f | %.1f (%zu kB) | %.1f (%zu kB) | %.0f (%zu voxels) | %.1f | %.1f | %.2f | %.3f |\n", n,
                 t_full, t_all, t_update, up.incremental ? "diff" : "full", up.cubes, t_update_bytes,
                 up_bytes.from_bodies ? "bytes" : "trees", t_encode_update,
