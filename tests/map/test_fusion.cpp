@@ -8,6 +8,7 @@
 #include <Eigen/Geometry>
 
 #include "map_test_util.hpp"
+#include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/fusion.hpp"
 #include "mapmerge/map/map_codec.hpp"
 
@@ -258,6 +259,24 @@ TEST(Fusion, CoarserSourceIntoFinerTarget) {
   const double dst_volume = static_cast<double>(dst_occ.size()) * std::pow(0.05, 3);
   EXPECT_NEAR(dst_volume / src_volume, 1.0, 0.1);
   EXPECT_GT(occupied_share(target, src_occ, pose(0.3, Eigen::Vector3d(0.1, 0.2, 0))), 0.95);
+}
+
+TEST(Fusion, RefineSplitsEveryVoxelOntoTheFinerGrid) {
+  // mapmerge::refine (the bench's 2 cm grid): geb079's 8 cm voxels onto a 4 cm grid, which
+  // splits each into exactly 8; every fine voxel keeps the state of the coarse one it lies in.
+  const auto source = test::load("geb079.bt");
+  const auto fine = refine(*source, 0.04);
+  ASSERT_NEAR(fine->getResolution(), 0.04, 1e-12);
+  const Eigen::AlignedBox3d all(Eigen::Vector3d::Constant(-1e4), Eigen::Vector3d::Constant(1e4));
+  EXPECT_EQ(count_occupied(*fine, all), 8 * count_occupied(*source, all));
+  std::size_t checked = 0;
+  for (auto it = fine->begin_leafs(), end = fine->end_leafs(); it != end && checked < 20000; ++it, ++checked) {
+    const octomap::OcTreeNode* coarse = source->search(it.getCoordinate());
+    ASSERT_NE(coarse, nullptr);
+    EXPECT_EQ(fine->isNodeOccupied(*it), source->isNodeOccupied(coarse));
+  }
+  EXPECT_THROW(refine(*source, 0.1), std::invalid_argument);
+  EXPECT_THROW(refine(*source, 0.0), std::invalid_argument);
 }
 
 TEST(Fusion, FinerSourceIntoCoarserTargetKeepsEveryOccupiedVoxel) {

@@ -4,6 +4,7 @@
 #include <stdexcept>
 
 #include "mapmerge/map/bounds.hpp"
+#include "mapmerge/map/fusion.hpp"
 
 namespace mapmerge {
 
@@ -134,6 +135,18 @@ std::unique_ptr<octomap::OcTree> coarsen(const octomap::OcTree& tree, int factor
   }
   out->updateInnerOccupancy();
   out->prune();
+  return out;
+}
+
+std::unique_ptr<octomap::OcTree> refine(const octomap::OcTree& tree, double resolution) {
+  if (!(resolution > 0.0) || resolution > tree.getResolution() * (1 + 1e-9))
+    throw std::invalid_argument("refine: resolution must be positive and at most the map's");
+  auto out = std::make_unique<octomap::OcTree>(resolution);
+  out->setClampingThresMin(tree.getClampingThresMin());
+  out->setClampingThresMax(tree.getClampingThresMax());
+  out->setOccupancyThres(tree.getOccupancyThres());
+  const FuseResult r = fuse_into(*out, tree, Eigen::Matrix4d::Identity(), FuseConfig{});
+  if (!r.ok) throw std::invalid_argument("refine: " + r.reason);
   return out;
 }
 

@@ -29,6 +29,11 @@ std::unique_ptr<octomap::OcTree> crop_and_transform(const octomap::OcTree& tree,
 /// std::invalid_argument when factor < 1.
 std::unique_ptr<octomap::OcTree> coarsen(const octomap::OcTree& tree, int factor);
 
+/// The same map on a finer grid of `resolution` [m]: every voxel whose centre lies in a leaf
+/// takes that leaf's log-odds (fuse_into() into an empty tree; pruned). The map's detail stays
+/// that of its own resolution. Throws std::invalid_argument unless 0 < resolution <= the map's.
+std::unique_ptr<octomap::OcTree> refine(const octomap::OcTree& tree, double resolution);
+
 /// Number of occupied full-resolution voxels whose centres lie in `box`.
 std::size_t count_occupied(const octomap::OcTree& tree, const Eigen::AlignedBox3d& box);
 
