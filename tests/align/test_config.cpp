@@ -81,3 +81,16 @@ TEST(AlignConfig, LengthUnitsAreMetricAndFlooredAtTheVoxel) {
   EXPECT_DOUBLE_EQ(ma::length_units(0.02, scaled).feature, 0.02);
 }
 
+TEST(AlignConfig, TolerancesFollowTheVoxelButNotBelowTheAccuracyUnit) {
+  const ma::AlignConfig c;
+  EXPECT_DOUBLE_EQ(ma::length_units(0.02, c).tolerance, 0.05);  // RGB-D grid: sensor noise, not the grid
+  EXPECT_DOUBLE_EQ(ma::length_units(0.05, c).tolerance, 0.05);
+  EXPECT_DOUBLE_EQ(ma::length_units(0.08, c).tolerance, 0.08);
+  EXPECT_DOUBLE_EQ(ma::length_units(0.2, c).tolerance, 0.2);
+  ma::AlignConfig voxel;
+  voxel.scale.accuracy_unit = 0.0;  // tolerances at voxel level at every resolution
+  EXPECT_DOUBLE_EQ(ma::length_units(0.02, voxel).tolerance, 0.02);
+  EXPECT_DOUBLE_EQ(ma::parse_align_config("scale: {accuracy_unit: 0.02}\n").scale.accuracy_unit, 0.02);
+  EXPECT_THROW(ma::parse_align_config("scale: {accuracy_unit: -0.01}\n"), ma::ConfigError);
+}
+

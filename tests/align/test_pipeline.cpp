@@ -92,6 +92,22 @@ TEST(AlignPipeline, SameDefaultsRecoverAnOutdoorScaleMap) {
   EXPECT_LT(e.trans_m, coarse->getResolution());
 }
 
+TEST(AlignPipeline, SameDefaultsRecoverAMapOnA2cmGrid) {
+  // The room cut and moved at its 5 cm, then both parts resampled onto a 2 cm grid (RGB-D
+  // voxels; ~0.9M points each, the detail still that of 5 cm): no preset. Features see the
+  // same 5 cm-unit clouds, tolerances stay at scale.accuracy_unit (5 cm), not at 2 cm.
+  const auto tree = load("fr_078_tidyup.bt");
+  const Pair coarse = make_pair(*tree, box(-11, -9, -2, -3, 3, 4), box(-7, -9, -2, 1, 3, 4),
+                                mapmerge::paper_transform(2, -1, 0.2, -3, 2, 70));
+  const Pair p{mapmerge::refine(*coarse.target, 0.02), mapmerge::refine(*coarse.source, 0.02), coarse.T_true};
+  ASSERT_NEAR(p.target->getResolution(), 0.02, 1e-12);
+  const ma::AlignResult r = ma::align_maps(*p.target, *p.source, ma::AlignConfig{});
+  ASSERT_TRUE(r.accepted) << r.reason;
+  const Errors e = errors(r.T_target_source, p.T_true);
+  EXPECT_LT(e.rot_deg, 1.0);
+  EXPECT_LT(e.trans_m, tree->getResolution());
+}
+
 TEST(AlignPipeline, RecoversARoomWithSubmodels) {
   const auto tree = load("fr_078_tidyup.bt");
   const Pair p = make_pair(*tree, box(-11, -9, -2, -1, 6, 4), box(-6, -9, -2, 3, 6, 4),

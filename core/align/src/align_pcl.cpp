@@ -41,6 +41,11 @@ double scale_of(const PreparedMap::Impl& a, const PreparedMap::Impl& b) {
   return std::max(a.resolution, b.resolution);
 }
 
+/// The "x res" unit of tolerances for a pair of maps [m] (LengthUnits::tolerance).
+double tolerance_of(const PreparedMap::Impl& a, const PreparedMap::Impl& b, const AlignConfig& cfg) {
+  return length_units(scale_of(a, b), cfg).tolerance;
+}
+
 // ---------------------------------------------------------------------------------------
 // Stage 7: validation.
 
@@ -88,11 +93,10 @@ Counts check_direction(const PreparedMap::Impl& from, const PreparedMap::Impl& t
       });
 }
 
-/// Both directions: source into target and target into source.
+/// Both directions: source into target and target into source; `res`: the "x res" unit.
 Validation check(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
                  const Eigen::Matrix4d& T_target_source, std::size_t samples,
-                 const ValidateConfig& c, std::size_t n_th) {
-  const double res = scale_of(target, source);
+                 const ValidateConfig& c, std::size_t n_th, double res) {
   const Counts a = check_direction(source, target, T_target_source, samples, c, res);
   const Counts b = check_direction(target, source, T_target_source.inverse(), samples, c, res);
   Validation v;
@@ -251,7 +255,7 @@ Eigen::Matrix4d icp(const PreparedMap::Impl& source, const Cloud::Ptr& target_cr
                     const LengthUnits& units, std::size_t max_points, bool ramp) {
   // Source: full-resolution voxel centres (not the downsampled cloud), so the result is not
   // quantised by the describe voxel; target: downsampled points with their local planes.
-  const double last = c.final_correspondence * units.res;
+  const double last = c.final_correspondence * units.tolerance;
   const double first = ramp ? c.max_correspondence * units.refine : last;
   const Cloud src = overlap_sample(*source.full, tree, T0, first, max_points);
   Eigen::Matrix4d T = T0;
@@ -269,7 +273,7 @@ Eigen::Matrix4d icp(const PreparedMap::Impl& source, const Cloud::Ptr& target_cr
     if (angle > 0.0) dT.topLeftCorner<3, 3>() = Eigen::AngleAxisd(angle, x.head<3>() / angle).toRotationMatrix();
     dT.topRightCorner<3, 1>() = x.tail<3>();
     T = dT * T;
-    if (x.tail<3>().norm() < c.convergence_translation * units.res &&
+    if (x.tail<3>().norm() < c.convergence_translation * units.tolerance &&
         angle * 180.0 / M_PI < c.convergence_rotation_deg && f >= 1.0)
       break;
   }
@@ -285,7 +289,7 @@ Eigen::Matrix4d ndt(const PreparedMap::Impl& source, const Cloud::Ptr& target_cr
   pcl::NormalDistributionsTransform<Point, Point> reg;
   reg.setResolution(static_cast<float>(c.ndt_resolution * units.refine));
   reg.setStepSize(c.ndt_step * units.refine);
-  reg.setTransformationEpsilon(c.convergence_translation * units.res);
+  reg.setTransformationEpsilon(c.convergence_translation * units.tolerance);
   reg.setMaximumIterations(c.max_iterations);
   reg.setInputTarget(target_crop);
   reg.setInputSource(src);
@@ -363,7 +367,7 @@ std::vector<Candidate> search_blocks(const PreparedMap::Impl& target, const Prep
                                      const std::vector<std::vector<int>>& subsets,
                                      const AlignConfig& cfg, std::atomic<double>& match_ms,
                                      std::atomic<double>& validate_ms, std::size_t& raw) {
-  const double res = scale_of(target, source);
+  const double res = tolerance_of(target, source, cfg);
   std::vector<Candidate> found;
   std::mutex lock;
   std::atomic<std::size_t> next{0}, raw_count{0};
@@ -381,7 +385,7 @@ std::vector<Candidate> search_blocks(const PreparedMap::Impl& target, const Prep
         h.submodel = cfg.submodels.enabled ? static_cast<int>(i) : -1;
         Candidate cand;
         cand.h = h;
-        cand.coarse = check(target, source, h.T_target_source, vc.coarse_points, vc, 1);
+        cand.coarse = check(target, source, h.T_target_source, vc.coarse_points, vc, 1, res);
         const bool good = cand.coarse.inlier_share >= cfg.submodels.early_stop_inlier_share &&
                           cand.coarse.inlier_fraction >= vc.min_inlier_fraction &&
                           cand.coarse.fitness <= vc.max_fitness * res;
@@ -433,7 +437,7 @@ constexpr const char* kAmbiguous = "ambiguous";
 /// distinct alternative comes close (repetitive corridors, symmetric rooms), else the reason.
 std::string select_best(std::vector<Candidate>& cands, const ValidateConfig& c,
                         const LengthUnits& units) {
-  const double res = units.res;
+  const double res = units.tolerance;
   const double w = c.conflict_weight;
   std::sort(cands.begin(), cands.end(), [w](const Candidate& a, const Candidate& b) {
     return score_of(a.fine, w) > score_of(b.fine, w);
@@ -457,12 +461,12 @@ void polish(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
             const AlignConfig& cfg, Candidate& best, StageTimings& t,
             std::atomic<double>& validate_ms, double keep_ratio, Pass pass = Pass::kPolish,
             bool from_polished = false) {
-  const double res = scale_of(target, source);
+  const double res = tolerance_of(target, source, cfg);
   auto t0 = Clock::now();
   const Eigen::Matrix4d T = local_alignment(target, source, best.T_refined, cfg, pass, from_polished);
   t.refine_ms += ms_since(t0);
   t0 = Clock::now();
-  const Validation v = check(target, source, T, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);
+  const Validation v = check(target, source, T, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th, res);
   add_ms(validate_ms, t0);
   const double w = cfg.validate.conflict_weight;
   if (rejection(v, cfg.validate, res).empty() && score_of(v, w) >= keep_ratio * score_of(best.fine, w)) {
@@ -514,7 +518,8 @@ AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
   result.timings.refine_ms = ms_since(t0);
   t0 = Clock::now();
   for (Candidate& c : cands)
-    c.fine = check(target, source, c.T_refined, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);
+    c.fine = check(target, source, c.T_refined, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th,
+                   units.tolerance);
   std::string why = select_best(cands, cfg.validate, units);
   add_ms(validate_ms, t0);
   if (why.empty()) {
@@ -554,9 +559,10 @@ AlignResult refine(const PreparedMap& target_map, const PreparedMap& source_map,
   const Eigen::Matrix4d T = local_alignment(target, source, T_target_source_init, cfg, Pass::kFine);
   result.timings.refine_ms = ms_since(t0);
   t0 = Clock::now();
-  const Validation v = check(target, source, T, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th);
+  const double tol = tolerance_of(target, source, cfg);
+  const Validation v = check(target, source, T, fine_samples(cfg.validate), cfg.validate, cfg.validate.n_th, tol);
   result.timings.validate_ms = ms_since(t0);
-  result.reason = rejection(v, cfg.validate, scale_of(target, source));
+  result.reason = rejection(v, cfg.validate, tol);
   result.accepted = result.reason.empty();
   result.T_target_source = result.accepted ? T : T_target_source_init;
   result.fitness = v.fitness;
@@ -570,7 +576,7 @@ AlignResult refine(const PreparedMap& target_map, const PreparedMap& source_map,
 Validation validate(const PreparedMap& target, const PreparedMap& source,
                     const Eigen::Matrix4d& T_target_source, const AlignConfig& cfg) {
   return check(target.impl(), source.impl(), T_target_source, fine_samples(cfg.validate),
-               cfg.validate, cfg.validate.n_th);
+               cfg.validate, cfg.validate.n_th, tolerance_of(target.impl(), source.impl(), cfg));
 }
 
 AlignResult align_maps(const octomap::OcTree& target, const octomap::OcTree& source,

@@ -18,6 +18,7 @@ template <class Config, class F>
 void for_each_field(Config& c, F&& f) {
   f("", "seed", c.seed);
   f("scale", "feature_unit", c.scale.feature_unit);
+  f("scale", "accuracy_unit", c.scale.accuracy_unit);
   f("points", "min_occupancy", c.points.min_occupancy);
   f("points", "max_points", c.points.max_points);
   auto& p = c.preprocess;
@@ -200,6 +201,7 @@ LengthUnits length_units(double res, const AlignConfig& c) {
   const double u = c.scale.feature_unit > 0.0 ? c.scale.feature_unit : res;
   LengthUnits units;
   units.res = res;
+  units.tolerance = std::max(res, c.scale.accuracy_unit);
   units.preprocess = std::max(u, res / c.preprocess.voxel_size);  // ICP cloud leaf >= 1 voxel
   units.feature = std::max(u, res / c.describe.voxel_size);       // describe leaf >= 1 voxel
   units.refine = std::max(units.feature, res);
@@ -228,6 +230,7 @@ const char* to_string(RefineMethod m) {
 
 void check_align_config(const AlignConfig& c) {
   require(c.scale.feature_unit >= 0.0, "scale.feature_unit >= 0");
+  require(c.scale.accuracy_unit >= 0.0, "scale.accuracy_unit >= 0");
   require(c.preprocess.voxel_size > 0.0, "preprocess.voxel_size > 0");
   require(c.preprocess.normal_radius > 0.0, "preprocess.normal_radius > 0");
   require(c.preprocess.fine_normal_radius > 0.0, "preprocess.fine_normal_radius > 0");

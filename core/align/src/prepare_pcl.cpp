@@ -90,7 +90,7 @@ Cloud::Ptr preprocess(const Cloud::Ptr& input, const PreprocessConfig& c, const 
       if (p.z >= c.z_min && p.z <= c.z_max) kept->push_back(p);
     cloud = kept;
   }
-  if (c.remove_ground && cloud->size() > 100) cloud = remove_ground(cloud, c, res);
+  if (c.remove_ground && cloud->size() > 100) cloud = remove_ground(cloud, c, units.tolerance);
   const double leaf = c.voxel_size * units.preprocess;
   if (leaf > 1.01 * res) cloud = voxel_grid(cloud, leaf);
   if (c.outlier_removal && cloud->size() > static_cast<std::size_t>(c.outlier_mean_k) + 1) {

@@ -2,7 +2,9 @@
 /// Settings of every stage of the alignment pipeline (issue 3). Plain structs, one per stage.
 ///
 /// Lengths come in three units, so that the same defaults serve maps at 2 cm, 5 cm and 20 cm:
-///  - "x res": the map resolution (validation and the last ICP iterations work at voxel level);
+///  - "x res": the map resolution, floored at scale.accuracy_unit (validation, the last ICP
+///    iterations and the ground plane work at voxel level, but not finer than two robots'
+///    surfaces can agree);
 ///  - "x u": the feature unit u = max(scale.feature_unit, res / describe.voxel_size), i.e. a
 ///    fixed metric length (5 cm by default) that grows with coarse maps only so far that the
 ///    describe cloud keeps at least one voxel per leaf (keypoints, descriptors, matching,
@@ -20,6 +22,10 @@ namespace mapmerge::align {
 /// The metric scale of the features (see the units above).
 struct ScaleConfig {
   double feature_unit = 0.05;  ///< u before flooring [m]; 0 = the map resolution (every length scales with it)
+  /// Floor of the "x res" unit [m]: a grid finer than this (RGB-D maps at 2 cm) does not make two
+  /// robots' surfaces agree more closely than their sensors' noise (RGB-D depth: 1-3 cm at
+  /// 2-4 m) and their own drift; 0 = the map resolution.
+  double accuracy_unit = 0.05;
 };
 
 /// Stage 1: octree -> occupied points.
@@ -167,7 +173,8 @@ std::string dump_align_config_json(const AlignConfig& config);
 
 /// The length units of a map (or pair) at resolution `res` [m] under `config` (see the top).
 struct LengthUnits {
-  double res = 0.0;         ///< "x res" [m]
+  double res = 0.0;         ///< the map resolution (grid steps) [m]
+  double tolerance = 0.0;   ///< "x res": max(res, scale.accuracy_unit) [m]
   double preprocess = 0.0;  ///< unit of preprocess.voxel_size and normal_radius [m]
   double feature = 0.0;     ///< "x u" [m]
   double refine = 0.0;      ///< "x max(u, res)" [m]
