@@ -1,8 +1,8 @@
 // Global fusion of N robots' maps cut from one real map (strips along x, each in its own turned
 // frame, as bench/server cuts them): the full re-fusion the server used to run on every change
 // against GlobalFusion's incremental update of one robot (its map grown, same pose), a pose
-// change, and the outputs (encode, provenance). CPU time of this thread, so the numbers hold on
-// a loaded machine. Memory: the global sums and a robot's decoded map against its payload.
+// change, and the outputs (encode, provenance). Wall time (GlobalFusion uses several threads:
+// run it on an idle machine). Memory: the global sums and a robot's decoded map against its payload.
 #include <chrono>
 #include <algorithm>
 #include <cstdio>
@@ -27,6 +27,11 @@ double wall_ms() {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now().time_since_epoch()).count();
 }
 
+double median(std::vector<double> v) {
+  std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
+  return v[v.size() / 2];
+}
+
 struct Robot {
   std::shared_ptr<const octomap::OcTree> map, grown;  ///< as the server holds them: decoded from `.bt`
   std::shared_ptr<const std::vector<std::uint8_t>> map_body, grown_body;  ///< their binary bodies
@@ -35,17 +40,26 @@ struct Robot {
 };
 
 /// N strips of `share` of the map's length; robot i's grown map reaches `grow` m further.
-std::vector<Robot> make_fleet(const octomap::OcTree& world, int n, double share, double grow) {
+/// Robots other than the first are turned by a random yaw and a roll and pitch of up to `tilt`.
+std::vector<Robot> make_fleet(const octomap::OcTree& world, int n, double share, double grow, double tilt) {
   double x0, y0, z0, x1, y1, z1;
   world.getMetricMin(x0, y0, z0);
   world.getMetricMax(x1, y1, z1);
   const double length = std::max((x1 - x0) * share, 2.0 * (x1 - x0) / (n + 1));
   const double step = n > 1 ? ((x1 - x0) - length) / (n - 1) : 0.0;
   std::mt19937 rng(1234 + static_cast<unsigned>(n));
-  std::uniform_real_distribution<double> yaw(-M_PI, M_PI), off(-5, 5);
+  std::uniform_real_distribution<double> yaw(-M_PI, M_PI), off(-5, 5), tilted(-tilt, tilt);
   std::vector<Robot> fleet;
   for (int i = 0; i < n; ++i) {
-    const Eigen::Isometry3d T = i == 0 ? Eigen::Isometry3d::Identity() : make_transform(off(rng), off(rng), 0, 0, 0, yaw(rng));
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    if (i != 0) {  // drawn in the order GCC drew them before --tilt, so --tilt 0 keeps the fleets
+      const double a = yaw(rng);
+      const double y = off(rng);
+      const double x = off(rng);
+      const double roll = tilt > 0 ? tilted(rng) : 0.0;
+      const double pitch = tilt > 0 ? tilted(rng) : 0.0;
+      T = make_transform(x, y, 0, roll, pitch, a);
+    }
     auto box = [&](double extra) {
       return Eigen::AlignedBox3d(Eigen::Vector3d(x0 + i * step, y0, z0), Eigen::Vector3d(x0 + i * step + length + extra, y1, z1));
     };
@@ -75,6 +89,10 @@ int main(int argc, char** argv) {
   app.add_option("--robots", sizes, "fleet sizes")->delimiter(',');
   app.add_option("--strip-share", share, "share of the map's length each robot sees");
   app.add_option("--grow", grow, "how far a robot's map grows in one update [m]");
+  double tilt_deg = 0.0;
+  app.add_option("--tilt", tilt_deg, "largest roll and pitch of a robot's frame [deg]")->check(CLI::Range(0.0, 45.0));
+  int repeat = 1;
+  app.add_option("--repeat", repeat, "updates by the bodies measured (medians printed)")->check(CLI::Range(1, 1000));
   unsigned threads = 0;
   app.add_option("--threads", threads, "GlobalFusion's threads (0: its default)");
   CLI11_PARSE(app, argc, argv);
@@ -83,10 +101,10 @@ int main(int argc, char** argv) {
   const unsigned used = threads != 0 ? threads : GlobalFusion(world->getResolution()).threads();
   std::printf("map %s, a robot's map grows by %.1f m per update; wall ms, GlobalFusion on %u thread(s)\n",
               map.c_str(), grow, used);
-  std::printf("| N | full re-fusion + prune + encode | GlobalFusion all | update (diff of trees) | update (diff of bodies) | encode after it | pose change | encode after it | encode unchanged | provenance | decode robot | sums MB | robot tree MB | robot payload MB |\n");
+  std::printf("| N | full re-fusion + prune + encode | GlobalFusion all | update (diff of trees) | update (diff of bodies: walk / place) | encode after it | pose change | encode after it | encode unchanged | provenance | decode robot | sums MB | robot tree MB | robot payload MB |\n");
   std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
   for (const int n : sizes) {
-    const auto fleet = make_fleet(*world, n, share, grow);
+    const auto fleet = make_fleet(*world, n, share, grow, tilt_deg * M_PI / 180.0);
     std::vector<MapInGlobal> placed;
     for (const auto& r : fleet) placed.emplace_back(r.map.get(), r.T_global_robot);
     double t = wall_ms();
@@ -108,12 +126,25 @@ int main(int argc, char** argv) {
     const double t_update = wall_ms() - t;
     g.set("r" + std::to_string(k), fleet[k].map, fleet[k].T_global_robot, fleet[k].map_body);  // back (tree walk)
     t = wall_ms();
-    const GlobalFuseResult up_bytes =
+    GlobalFuseResult up_bytes =
         g.set("r" + std::to_string(k), fleet[k].grown, fleet[k].T_global_robot, fleet[k].grown_body);
-    const double t_update_bytes = wall_ms() - t;
+    std::vector<double> update_ms{wall_ms() - t}, walk_ms{up_bytes.diff_s * 1e3}, place_ms{up_bytes.place_s * 1e3};
     t = wall_ms();
-    const auto encoded_update = g.encode();  // the blocks the grown map changed, the rest copied
-    const double t_encode_update = wall_ms() - t;
+    auto encoded_update = g.encode();  // the blocks the grown map changed, the rest copied
+    std::vector<double> encode_ms{wall_ms() - t};
+    for (int r = 1; r < repeat; ++r) {  // back and grown again, on the bodies
+      g.set("r" + std::to_string(k), fleet[k].map, fleet[k].T_global_robot, fleet[k].map_body);
+      g.encode();
+      t = wall_ms();
+      up_bytes = g.set("r" + std::to_string(k), fleet[k].grown, fleet[k].T_global_robot, fleet[k].grown_body);
+      update_ms.push_back(wall_ms() - t);
+      walk_ms.push_back(up_bytes.diff_s * 1e3);
+      place_ms.push_back(up_bytes.place_s * 1e3);
+      t = wall_ms();
+      encoded_update = g.encode();
+      encode_ms.push_back(wall_ms() - t);
+    }
+    const double t_update_bytes = median(update_ms), t_encode_update = median(encode_ms);
     Eigen::Matrix4d moved = fleet[k].T_global_robot;
     moved(0, 3) += 0.02;
     t = wall_ms();
@@ -132,9 +163,9 @@ int main(int argc, char** argv) {
     t = wall_ms();
     const DecodeResult d = decode_map(payload, Encoding::kOctomapBt, DecodeLimits{});
     const double t_decode = wall_ms() - t;
-    std::printf("| %d | %.0f | %.0f | %.1f (%s, %zu cubes) | %.1f (%s) | %.1f (%zu kB) | %.0f | %.1f (%zu kB) | %.1f (%zu kB) | %.0f (%zu voxels) | %.1f | %.1f | %.2f | %.3f |\n", n,
+    std::printf("| %d | %.0f | %.0f | %.1f (%s, %zu cubes) | %.1f (%s: %.1f / %.1f; %zu voxel, %zu block adds) | %.1f (%zu kB) | %.0f | %.1f (%zu kB) | %.1f (%zu kB) | %.0f (%zu voxels) | %.1f | %.1f | %.2f | %.3f |\n", n,
                 t_full, t_all, t_update, up.incremental ? "diff" : "full", up.cubes, t_update_bytes,
-                up_bytes.from_bodies ? "bytes" : "trees", t_encode_update,
+                up_bytes.from_bodies ? "bytes" : "trees", median(walk_ms), median(place_ms), up_bytes.voxel_updates, up_bytes.block_updates, t_encode_update,
                 encoded_update.bt.size() / 1024, t_pose, t_encode, encoded.bt.size() / 1024, t_encode_again,
                 again.bt.size() / 1024, t_prov, p.owner.size(), t_decode, g.memory_usage() / 1e6, d.tree ? d.tree->memoryUsage() / 1e6 : 0.0,
                 payload.size() / 1e6);

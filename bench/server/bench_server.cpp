@@ -90,7 +90,7 @@ std::map<std::string, std::vector<double>> incremental_stages(const std::string&
   std::map<std::string, std::vector<double>> stages;
   std::ifstream log(log_path);
   for (std::string line; std::getline(log, line);) {
-    double a = 0, b = 0, c = 0, d = 0, e = 0;
+    double a = 0, b = 0, c = 0, d = 0, e = 0, f = 0, g = 0;
     const auto accepted = line.find("; check ");
     if (accepted != std::string::npos && std::sscanf(line.c_str() + accepted, "; check %lf ms, store %lf ms", &a, &b) == 2) {
       stages["map check"].push_back(a);
@@ -100,8 +100,11 @@ std::map<std::string, std::vector<double>> incremental_stages(const std::string&
     if (line.find("(1 re-fused, 1 by difference") == std::string::npos) continue;
     const auto at = line.find("(fuse ");
     if (at != std::string::npos &&
-        std::sscanf(line.c_str() + at, "(fuse %lf, encode %lf, poses %lf, store %lf, publish %lf)", &a, &b, &c, &d, &e) == 5) {
+        std::sscanf(line.c_str() + at, "(fuse %lf: diff %lf, place %lf for %*u cubes; encode %lf, poses %lf, store %lf, publish %lf)",
+                    &a, &f, &g, &b, &c, &d, &e) == 7) {
       stages["global fuse"].push_back(a);
+      stages["global fuse: diff"].push_back(f);
+      stages["global fuse: place"].push_back(g);
       stages["global encode"].push_back(b);
       stages["poses"].push_back(c);
       stages["global store"].push_back(d);

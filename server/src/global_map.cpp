@@ -163,7 +163,7 @@ std::optional<GlobalMapOut> GlobalMapBuilder::build(const Registry& registry, st
   g.hash = payload_hash(g.data);
   stages_ = Stages{std::chrono::duration<double>(t1 - t0).count(),
                    std::chrono::duration<double>(std::chrono::steady_clock::now() - t1).count(), sync.updated,
-                   sync.incremental, sync.from_bodies};
+                   sync.incremental, sync.from_bodies, sync.cubes, sync.diff_s, sync.place_s};
   const auto same = [](const Contribution& a, const Contribution& b) {
     return a.robot_id == b.robot_id && a.session_id == b.session_id && a.sequence == b.sequence;
   };

@@ -106,6 +106,9 @@ GlobalSync sync_global(GlobalFusion& fusion, const std::vector<PlacedMap>& maps,
       ++out.updated;
       out.incremental += res.incremental ? 1 : 0;
       out.from_bodies += res.from_bodies ? 1 : 0;
+      out.cubes += res.cubes;
+      out.diff_s += res.diff_s;
+      out.place_s += res.place_s;
     } catch (const std::exception& e) {
       fusion.remove(m.robot);
       refused[m.robot] = {m.map, m.T_global_robot};

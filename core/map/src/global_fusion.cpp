@@ -3,15 +3,16 @@
 #include <algorithm>
 #include <array>
 #include <atomic>
+#include <chrono>
 #include <cmath>
 #include <cstring>
 #include <functional>
 #include <mutex>
-#include <thread>
 #include <unordered_map>
 
 #include "leaf_mapper.hpp"
 #include "mapmerge/map/map_io.hpp"
+#include "morton.hpp"
 #include "parallel.hpp"
 #include "sum_tree.hpp"
 #include "tree_scan.hpp"
@@ -21,13 +22,9 @@ namespace {
 
 using detail::kTreeDepth;
 
-/// GlobalFusion's sink: packed evidence added to the sums.
-struct SumSink {
-  detail::SumTree& sums;
-  void apply(const octomap::OcTreeKey& key, unsigned level, std::int64_t delta) {
-    sums.add(key, level, delta);
-  }
-};
+double seconds_since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
 
 /// One robot's packed evidence for a leaf of log-odds `v` (0: ignored, as fuse_into ignores it).
 std::int64_t evidence(float v, const FuseConfig& config) {
@@ -319,27 +316,80 @@ bool whole_body(const HeldMap& map, bool remove, double target_res, const FuseCo
 /// Packed votes of source leaves finer than the target's voxels: the largest per voxel.
 using FineVotes = std::unordered_map<octomap::OcTreeKey, float, octomap::OcTreeKey::KeyHash>;
 
-/// A parallel add's sink: one thread's writer, inside the block its mapper's window is on.
-struct BlockSink {
-  detail::SumTree::BlockWriter& writer;
+/// An add the mapper found (a voxel, or an aligned block of 2^level voxels a side), held so that
+/// a run of them reaches the sums in the tree's depth-first order: a rotated map's cubes meet
+/// the global grid's nodes in no order of the tree's, and each add then waited on the memory
+/// of its descent (4x an identity-frame map's time per cube). In depth-first order each node is
+/// visited while it is still in the cache.
+struct PendingAdd {
+  std::uint64_t order;  ///< Morton code of the key (morton.hpp), shifted left by 4, | level
+  std::int64_t delta;
+};
+
+/// The mapper's sink of a sorted placement: collects the adds.
+struct PendingSink {
+  std::vector<PendingAdd>& adds;
   void apply(const octomap::OcTreeKey& key, unsigned level, std::int64_t delta) {
-    writer.add(key, level, delta);
+    adds.push_back({detail::morton_code(key[0], key[1], key[2]) << 4 | level, delta});
   }
 };
+
+/// Sorts `adds` into depth-first order, merges each 8 of one level that are the children of
+/// one block and add the same delta into one add of that block (up to a block of the encoder,
+/// SumTree::kBlockDepth: the windows of map_cubes), and gives each to `add(key, level, delta)`.
+/// The sums are integers and the adds' voxels are disjoint, so neither the order nor the merge
+/// changes a voxel's sum; the encoder prunes what the merge does not create.
+template <class Add>
+void apply_in_tree_order(std::vector<PendingAdd>& adds, Add&& add) {
+  constexpr unsigned kMaxLevel = kTreeDepth - detail::SumTree::kBlockDepth;
+  std::sort(adds.begin(), adds.end(), [](const PendingAdd& a, const PendingAdd& b) { return a.order < b.order; });
+  std::size_t n = 0;  // adds[0, n): the merged list so far, used as a stack
+  for (const PendingAdd& next : adds) {
+    adds[n++] = next;
+    while (n >= 8) {
+      const PendingAdd& first = adds[n - 8];
+      const auto level = static_cast<unsigned>(first.order & 15U);
+      const std::uint64_t code = first.order >> 4, step = std::uint64_t{1} << (3 * level);
+      if (level >= kMaxLevel || (code & ((step << 3) - 1)) != 0) break;  // not a first child
+      bool siblings = true;
+      for (unsigned i = 1; i < 8 && siblings; ++i) {
+        const PendingAdd& c = adds[n - 8 + i];
+        siblings = c.order == ((code + i * step) << 4 | level) && c.delta == first.delta;
+      }
+      if (!siblings) break;
+      adds[n - 8].order = code << 4 | (level + 1);
+      n -= 7;
+    }
+  }
+  adds.resize(n);
+  for (const PendingAdd& p : adds) {
+    const std::uint64_t code = p.order >> 4;
+    const octomap::OcTreeKey key(static_cast<octomap::key_type>(detail::morton_compact(code)),
+                                 static_cast<octomap::key_type>(detail::morton_compact(code >> 1)),
+                                 static_cast<octomap::key_type>(detail::morton_compact(code >> 2)));
+    add(key, static_cast<unsigned>(p.order & 15U), p.delta);
+  }
+  adds.clear();
+}
 
 /// Fewer cubes than this are placed on the calling thread (a thread start costs more).
 constexpr std::size_t kParallelCubes = 2048;
 
-/// Places `cubes` (a robot map's frame, moved by `T`) into `sums`. With several threads and
-/// enough cubes, the target blocks (SumTree::kBlockDepth subtrees) they reach are shared out:
-/// each block is written by one thread with its own descent and node count, so the sums are
-/// the same as one thread's (integer sums in another order) and so are the encoded bytes.
+/// Places `cubes` (a robot map's frame, moved by `T`) into `sums`, each run of adds in the
+/// tree's order (PendingAdd). With several threads and enough cubes, the target blocks
+/// (SumTree::kBlockDepth subtrees) they reach are shared out: each block is written by one
+/// thread with its own descent and node count, so the sums are the same as one thread's
+/// (integer sums in another order) and so are the encoded bytes.
 void map_cubes(detail::SumTree& sums, const Eigen::Matrix4d& T, double res, const std::vector<ChangedCube>& cubes,
                unsigned threads, FuseResult& counts) {
-  SumSink sink{sums};
-  detail::LeafMapper<SumSink, std::int64_t> mapper(T, res, sink, counts);
+  std::vector<PendingAdd> adds;
+  PendingSink sink{adds};
+  detail::LeafMapper<PendingSink, std::int64_t> mapper(T, res, sink, counts);
   if (threads < 2 || cubes.size() < kParallelCubes) {
     for (const ChangedCube& cube : cubes) mapper.add_cube(cube.centre, cube.size, cube.delta);
+    apply_in_tree_order(adds, [&](const octomap::OcTreeKey& key, unsigned level, std::int64_t delta) {
+      sums.add(key, level, delta);
+    });
     return;
   }
   // Which blocks each cube may reach (its key box, in blocks).
@@ -352,8 +402,10 @@ void map_cubes(detail::SumTree& sums, const Eigen::Matrix4d& T, double res, cons
     for (int z = lo[2] >> kBlockLevel; z <= hi[2] >> kBlockLevel; ++z)
       for (int y = lo[1] >> kBlockLevel; y <= hi[1] >> kBlockLevel; ++y)
         for (int x = lo[0] >> kBlockLevel; x <= hi[0] >> kBlockLevel; ++x)
-          by_block[std::uint64_t(x) | std::uint64_t(y) << 16 | std::uint64_t(z) << 32].push_back(
-              static_cast<std::uint32_t>(i));
+          by_block[patch_block_of(octomap::OcTreeKey(static_cast<octomap::key_type>(x << kBlockLevel),
+                                                     static_cast<octomap::key_type>(y << kBlockLevel),
+                                                     static_cast<octomap::key_type>(z << kBlockLevel)))]
+              .push_back(static_cast<std::uint32_t>(i));
   }
   struct Job {
     std::uint64_t block;
@@ -372,14 +424,18 @@ void map_cubes(detail::SumTree& sums, const Eigen::Matrix4d& T, double res, cons
   std::mutex done;
   auto work = [&] {
     detail::SumTree::BlockWriter writer(sums);
-    BlockSink block_sink{writer};
+    std::vector<PendingAdd> mine_adds;
+    PendingSink block_sink{mine_adds};
     FuseResult mine;
-    detail::LeafMapper<BlockSink, std::int64_t> windowed(T, res, block_sink, mine);
+    detail::LeafMapper<PendingSink, std::int64_t> windowed(T, res, block_sink, mine);
+    const auto add = [&](const octomap::OcTreeKey& key, unsigned level, std::int64_t delta) {
+      writer.add(key, level, delta);
+    };
     for (std::size_t k = next++; k < jobs.size(); k = next++) {
       windowed.set_window(patch_block_key(jobs[k].block), kBlockLevel);
-      const std::size_t before = mine.voxel_updates + mine.block_updates;
       for (const std::uint32_t i : *jobs[k].cubes) windowed.add_cube(cubes[i].centre, cubes[i].size, cubes[i].delta);
-      jobs[k].changed = mine.voxel_updates + mine.block_updates != before;
+      jobs[k].changed = !mine_adds.empty();
+      apply_in_tree_order(mine_adds, add);
     }
     std::lock_guard<std::mutex> lock(done);
     sums.account_writer(writer);
@@ -401,7 +457,7 @@ GlobalFusion::GlobalFusion(double resolution, const FuseConfig& config)
   }
   sums_ = std::make_unique<detail::SumTree>(resolution);
   encoded_ = std::make_unique<detail::EncodedBlocks>();
-  threads_ = std::max(1U, std::min(4U, std::thread::hardware_concurrency()));
+  threads_ = detail::default_threads();
 }
 
 void GlobalFusion::set_threads(unsigned threads) { threads_ = std::max(1U, threads); }
@@ -438,21 +494,21 @@ std::size_t GlobalFusion::memory_usage() const { return sums_->memoryUsage(); }
 void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stats, bool body_checked) {
   const Eigen::Matrix4d& T = entry.T_global_robot;
   FuseResult counts;
-  SumSink sink{*sums_};
-  detail::LeafMapper<SumSink, std::int64_t> mapper(T, resolution_, sink, counts);
   double work = 0.0;
-  // The body's cubes go to map_cubes() in runs of kRun (memory stays bounded; each run is
-  // spread over the threads).
+  // The map's cubes go to map_cubes() in runs of kRun (memory stays bounded; each run is spread
+  // over the threads).
   constexpr std::size_t kRun = std::size_t{1} << 16;
   std::vector<ChangedCube> run;
   const auto add = [&](const ChangedCube& cube) {
-    ++stats.cubes;
     run.push_back(cube);
     if (run.size() < kRun) return;
     map_cubes(*sums_, T, resolution_, run, threads_, counts);
     run.clear();
   };
-  if (whole_body(*entry.map, sign < 0, resolution_, config_, add, work, body_checked)) {  // no tree built
+  if (whole_body(*entry.map, sign < 0, resolution_, config_, [&](const ChangedCube& cube) {
+        ++stats.cubes;
+        add(cube);
+      }, work, body_checked)) {  // no tree built
     map_cubes(*sums_, T, resolution_, run, threads_, counts);
     stats.voxel_updates += counts.voxel_updates;
     stats.block_updates += counts.block_updates;
@@ -468,7 +524,7 @@ void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stat
     ++stats.cubes;
     const Eigen::Vector3d c(it.getX(), it.getY(), it.getZ());
     if (it.getSize() >= resolution_ * (1 - 1e-9)) {
-      mapper.add_cube(c, it.getSize(), sign * e);
+      add({c, it.getSize(), sign * e});
       continue;
     }
     const Eigen::Vector3d ct = T.topLeftCorner<3, 3>() * c + T.topRightCorner<3, 1>();
@@ -477,12 +533,14 @@ void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stat
     auto [vote, inserted] = fine.try_emplace(key, v);
     if (!inserted) vote->second = std::max(vote->second, v);
   }
+  map_cubes(*sums_, T, resolution_, run, threads_, counts);
   for (const auto& [key, v] : fine) sums_->add(key, 0, sign * evidence(v, config_));
   stats.voxel_updates += counts.voxel_updates + fine.size();
   stats.block_updates += counts.block_updates;
 }
 
 bool GlobalFusion::add_difference(const Entry& before, const Entry& after, GlobalFuseResult& stats) {
+  const auto t0 = std::chrono::steady_clock::now();
   std::vector<ChangedCube> cubes;
   double work = 0.0;
   bool done = false;
@@ -502,13 +560,16 @@ bool GlobalFusion::add_difference(const Entry& before, const Entry& after, Globa
     work = diff.work;
   }
   stats.work = work;
+  stats.diff_s += seconds_since(t0);
   if (work > config_.max_work) {
     stats.reason = "map would cost ~" + std::to_string(static_cast<long long>(work)) +
                    " voxel visits, more than max_work (huge pruned leaves?)";
     return false;
   }
+  const auto t1 = std::chrono::steady_clock::now();
   FuseResult counts;
   map_cubes(*sums_, after.T_global_robot, resolution_, cubes, threads_, counts);
+  stats.place_s += seconds_since(t1);
   stats.cubes += cubes.size();
   stats.voxel_updates += counts.voxel_updates;
   stats.block_updates += counts.block_updates;
@@ -543,17 +604,21 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
     r.ok = add_difference(it->second, next, r);
     r.incremental = r.ok;
   } else {
+    const auto t0 = std::chrono::steady_clock::now();
     double work = 0.0;
     const bool body = whole_body(*next.map, false, resolution_, config_, nullptr, work);
     if (!body) work = detail::estimate_work(*next.map->tree(), resolution_, config_.fuse_free);
     r.work = work;
+    r.diff_s += seconds_since(t0);
     r.ok = work <= config_.max_work;
     if (!r.ok) {
       r.reason = "map would cost ~" + std::to_string(static_cast<long long>(work)) +
                  " voxel visits, more than max_work (huge pruned leaves?)";
     } else {
+      const auto t1 = std::chrono::steady_clock::now();
       if (it != robots_.end()) add_full(it->second, -1, r);
       add_full(next, +1, r, body);
+      r.place_s += seconds_since(t1);
     }
   }
   if (!r.ok) {

@@ -7,6 +7,7 @@
 #include <octomap/OcTree.h>
 
 #include "mapmerge/map/held_map.hpp"
+#include "morton.hpp"
 #include "octree_internals.hpp"
 #include "tree_scan.hpp"
 
@@ -16,33 +17,11 @@ namespace {
 using detail::kTreeDepth;
 constexpr std::int64_t kCentreKey = 1 << (kTreeDepth - 1);  ///< key of the cell at the origin
 
-/// The 16 bits of v spread to every third bit.
-std::uint64_t spread(std::uint64_t v) {
-  v &= 0xFFFFU;
-  v = (v | v << 32) & 0x1F00000000FFFFULL;
-  v = (v | v << 16) & 0x1F0000FF0000FFULL;
-  v = (v | v << 8) & 0x100F00F00F00F00FULL;
-  v = (v | v << 4) & 0x10C30C30C30C30C3ULL;
-  v = (v | v << 2) & 0x1249249249249249ULL;
-  return v;
-}
+using detail::morton_compact;
 
-/// The inverse of spread().
-std::uint64_t compact(std::uint64_t v) {
-  v &= 0x1249249249249249ULL;
-  v = (v ^ (v >> 2)) & 0x10C30C30C30C30C3ULL;
-  v = (v ^ (v >> 4)) & 0x100F00F00F00F00FULL;
-  v = (v ^ (v >> 8)) & 0x1F0000FF0000FFULL;
-  v = (v ^ (v >> 16)) & 0x1F00000000FFFFULL;
-  v = (v ^ (v >> 32)) & 0xFFFFU;
-  return v;
-}
-
-/// A key's Morton code: per level, from the root down, its child index (x bit 0, y bit 1, z
-/// bit 2), so that a depth-first walk meets the leaves of one depth in increasing order.
-std::uint64_t pack(std::uint64_t x, std::uint64_t y, std::uint64_t z) {
-  return spread(x) | (spread(y) << 1) | (spread(z) << 2);
-}
+/// A key's Morton code (morton.hpp): a depth-first walk meets the leaves of one depth in
+/// increasing order.
+std::uint64_t pack(std::uint64_t x, std::uint64_t y, std::uint64_t z) { return detail::morton_code(x, y, z); }
 
 /// The code of the corner of the leaf `depth` levels below the root holding the key `code`.
 std::uint64_t mask_to_depth(std::uint64_t code, unsigned depth) {
@@ -114,7 +93,7 @@ Eigen::Vector3d LeafSet::centre(std::size_t i) const {
   const double half = static_cast<double>((1U << kTreeDepth) >> d) / 2.0;
   Eigen::Vector3d c;
   for (int a = 0; a < 3; ++a) {
-    const auto key = static_cast<double>(compact(k >> a));
+    const auto key = static_cast<double>(morton_compact(k >> a));
     c[a] = (key - static_cast<double>(kCentreKey) + half) * resolution_;
   }
   return c;

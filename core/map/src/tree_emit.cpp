@@ -1,7 +1,6 @@
 #include <algorithm>
 #include <atomic>
 #include <sstream>
-#include <thread>
 #include <utility>
 
 #include "parallel.hpp"
@@ -59,7 +58,7 @@ constexpr int kSplitDepth = 2;
 void append_binary_body(const octomap::OcTree& tree, std::vector<std::uint8_t>& out) {
   const octomap::OcTreeNode* root = tree.getRoot();
   if (root == nullptr) return;
-  const unsigned threads = std::min(4U, std::thread::hardware_concurrency());
+  const unsigned threads = detail::default_threads();
   if (tree.size() < kParallelNodes || threads < 2) {
     append_subtree(tree, root, out);
     return;

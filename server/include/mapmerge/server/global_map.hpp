@@ -47,6 +47,8 @@ class GlobalMapBuilder {
     double encode_s = 0.0;  ///< serialising the global map
     std::size_t updated = 0, incremental = 0;  ///< robots re-fused, of which only the difference
     std::size_t from_bodies = 0;  ///< ... of which read off the payloads' bytes (no tree walk)
+    std::size_t cubes = 0;        ///< changed leaf regions placed (GlobalSync::cubes)
+    double diff_s = 0.0, place_s = 0.0;  ///< parts of fuse_s: finding the change, placing it
   };
   Stages last_stages() const { return stages_; }
   /// Frees the maps the last build replaced in the fusion. build() keeps them: freeing a

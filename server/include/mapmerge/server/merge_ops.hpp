@@ -66,6 +66,8 @@ struct GlobalSync {
   std::size_t updated = 0;           ///< robots (re)fused by this sync
   std::size_t incremental = 0;       ///< ... of which only the difference (same pose, grown map)
   std::size_t from_bodies = 0;       ///< ... of which diffed on the maps' binary bodies
+  std::size_t cubes = 0;             ///< changed leaf regions placed on the global grid
+  double diff_s = 0.0, place_s = 0.0;  ///< GlobalFuseResult's, summed over the robots
 };
 
 /// Robot -> the map and pose a fusion refused: not tried again until either changes.

@@ -57,6 +57,8 @@ struct GlobalFuseResult {
   double work = 0.0;           ///< fusion work of the map (FuseConfig::max_work's measure)
   std::size_t voxel_updates = 0;
   std::size_t block_updates = 0;
+  double diff_s = 0.0;   ///< wall time finding what changed (the difference walk, a body's check)
+  double place_s = 0.0;  ///< wall time placing the changed leaves on the global grid
 };
 
 /// The fleet's global map, kept up to date one robot at a time. Not thread-safe: one owner.
