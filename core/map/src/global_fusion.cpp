@@ -317,10 +317,10 @@ bool whole_body(const HeldMap& map, bool remove, double target_res, const FuseCo
 using FineVotes = std::unordered_map<octomap::OcTreeKey, float, octomap::OcTreeKey::KeyHash>;
 
 /// An add the mapper found (a voxel, or an aligned block of 2^level voxels a side), held so that
-/// a run of them reaches the sums in the tree's depth-first order: a rotated map's cubes meet
-/// the global grid's nodes in no order of the tree's, and each add then waited on the memory
-/// of its descent (4x an identity-frame map's time per cube). In depth-first order each node is
-/// visited while it is still in the cache.
+/// a run of them can be sorted into the tree's depth-first order and sibling adds merged
+/// (apply_in_tree_order): a turned map's cubes are cut into voxels along their faces (fr_079:
+/// 2.5 adds a cube), and the merge takes most of those back into blocks. Sorting alone did not
+/// make the placing faster; the merge does (bench/results/server.md, session 14).
 struct PendingAdd {
   std::uint64_t order;  ///< Morton code of the key (morton.hpp), shifted left by 4, | level
   std::int64_t delta;
@@ -500,15 +500,13 @@ void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stat
   constexpr std::size_t kRun = std::size_t{1} << 16;
   std::vector<ChangedCube> run;
   const auto add = [&](const ChangedCube& cube) {
+    ++stats.cubes;
     run.push_back(cube);
     if (run.size() < kRun) return;
     map_cubes(*sums_, T, resolution_, run, threads_, counts);
     run.clear();
   };
-  if (whole_body(*entry.map, sign < 0, resolution_, config_, [&](const ChangedCube& cube) {
-        ++stats.cubes;
-        add(cube);
-      }, work, body_checked)) {  // no tree built
+  if (whole_body(*entry.map, sign < 0, resolution_, config_, add, work, body_checked)) {  // no tree built
     map_cubes(*sums_, T, resolution_, run, threads_, counts);
     stats.voxel_updates += counts.voxel_updates;
     stats.block_updates += counts.block_updates;
@@ -521,12 +519,12 @@ void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stat
     const float v = it->getLogOdds();
     const std::int64_t e = evidence(v, config_);
     if (e == 0) continue;
-    ++stats.cubes;
     const Eigen::Vector3d c(it.getX(), it.getY(), it.getZ());
     if (it.getSize() >= resolution_ * (1 - 1e-9)) {
       add({c, it.getSize(), sign * e});
       continue;
     }
+    ++stats.cubes;  // a leaf finer than the grid: voted per voxel
     const Eigen::Vector3d ct = T.topLeftCorner<3, 3>() * c + T.topRightCorner<3, 1>();
     octomap::OcTreeKey key;
     if (!sums_->coordToKeyChecked(ct.x(), ct.y(), ct.z(), key)) continue;

@@ -17,11 +17,8 @@ namespace {
 using detail::kTreeDepth;
 constexpr std::int64_t kCentreKey = 1 << (kTreeDepth - 1);  ///< key of the cell at the origin
 
+using detail::morton_code;  // a depth-first walk meets the leaves of one depth in increasing order
 using detail::morton_compact;
-
-/// A key's Morton code (morton.hpp): a depth-first walk meets the leaves of one depth in
-/// increasing order.
-std::uint64_t pack(std::uint64_t x, std::uint64_t y, std::uint64_t z) { return detail::morton_code(x, y, z); }
 
 /// The code of the corner of the leaf `depth` levels below the root holding the key `code`.
 std::uint64_t mask_to_depth(std::uint64_t code, unsigned depth) {
@@ -31,7 +28,7 @@ std::uint64_t mask_to_depth(std::uint64_t code, unsigned depth) {
 }  // namespace
 
 void LeafSet::add(unsigned depth, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
-  by_depth_[depth].push_back(pack(x, y, z));
+  by_depth_[depth].push_back(morton_code(x, y, z));
 }
 
 void LeafSet::finish() {
@@ -65,7 +62,7 @@ LeafSet LeafSet::of(const octomap::OcTree& tree, LeafState state) {
     if (tree.isNodeOccupied(*it) != occupied) continue;
     const unsigned depth = it.getDepth();
     const octomap::OcTreeKey k = it.getKey();
-    out.by_depth_[depth].push_back(mask_to_depth(pack(k[0], k[1], k[2]), depth));
+    out.by_depth_[depth].push_back(mask_to_depth(morton_code(k[0], k[1], k[2]), depth));
   }
   out.finish();
   return out;
@@ -78,7 +75,7 @@ bool LeafSet::contains(const Eigen::Vector3d& p) const {
     if (!(k >= 0.0 && k < static_cast<double>(1U << kTreeDepth))) return false;
     key[a] = static_cast<std::uint64_t>(k);
   }
-  const std::uint64_t packed = pack(key[0], key[1], key[2]);
+  const std::uint64_t packed = morton_code(key[0], key[1], key[2]);
   for (unsigned d = 0; d < kLevels; ++d) {
     const auto& keys = by_depth_[d];
     if (!keys.empty() && std::binary_search(keys.begin(), keys.end(), mask_to_depth(packed, d))) return true;

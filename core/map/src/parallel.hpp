@@ -9,8 +9,8 @@
 
 namespace mapmerge::detail {
 
-/// The threads a parallel piece of core/map's work uses by default: one per core, at most 4
-/// (beyond that the memory, not the cores, is what the work waits on); at least 1.
+/// The threads a parallel piece of core/map's work uses by default: one per core, at most 4,
+/// at least 1.
 inline unsigned default_threads() { return std::max(1U, std::min(4U, std::thread::hardware_concurrency())); }
 
 /// Runs `work` on this thread and on up to `threads - 1` helper threads, and returns when all
