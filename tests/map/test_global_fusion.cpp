@@ -8,6 +8,7 @@
 #include <Eigen/Geometry>
 
 #include "map_test_util.hpp"
+#include "mapmerge/map/bounds.hpp"
 #include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/global_delta.hpp"
 #include "mapmerge/map/global_fusion.hpp"
@@ -411,6 +412,74 @@ TEST_F(GlobalFusionTest, DifferencesReadOffTheBinaryBodiesEqualTheTreeWalk) {
   EXPECT_TRUE(a.incremental);
   EXPECT_FALSE(a.from_bodies);
   expect_same_voxels(*with_bodies.tree(), *trees_only.tree());
+}
+
+TEST_F(GlobalFusionTest, ASubVoxelPoseChangeOfAGrownMapKeepsTheFusedPoseALargerOneMovesTheMap) {
+  // What the server asks when a refinement has moved a robot a little and its map has grown:
+  // fuse the difference at the fused pose if no leaf, old or new, moves by half a voxel.
+  const double res = world_->getResolution();
+  const double half_voxel = 0.5 * res;
+  const Robot r2 = cut(*world_, "r2", -8, 6, 1.1);
+  const Robot grown = cut(*world_, "r2", -8, 12, 1.1);
+  const Eigen::Matrix4d T = T_global(r2);
+  const auto first = checked(*r2.map);
+  const auto next = checked(*grown.map);
+  const auto fresh_encoding = [&](const Eigen::Matrix4d& pose) {
+    GlobalFusion scratch(res);
+    EXPECT_TRUE(scratch.set("r2", grown.map, pose).ok);
+    return scratch.encode().bt;
+  };
+  const auto contains = [](const Eigen::AlignedBox3d& outer, const Eigen::AlignedBox3d& inner) {
+    return (outer.min().array() <= inner.min().array() + 1e-9).all() &&
+           (outer.max().array() >= inner.max().array() - 1e-9).all();
+  };
+  // The poses: a 1 cm shift (kept); a turn about the robot's origin that moves no fused leaf by
+  // half a voxel but moves the grown part's farthest leaves by more (moved); a 30 cm shift.
+  GlobalFusion probe(res);
+  ASSERT_TRUE(probe.set("r2", first, T).ok);
+  const Eigen::AlignedBox3d fused_box = *probe.extent_of("r2");
+  EXPECT_TRUE(contains(fused_box, leaf_bounds(*r2.map)));
+  const auto turned = [&](double angle) {
+    Eigen::Matrix4d t = T;
+    t.topLeftCorner<3, 3>() = T.topLeftCorner<3, 3>() * Eigen::AngleAxisd(angle, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+    return t;
+  };
+  const double reach_fused = max_displacement(T, turned(1e-4), fused_box) / 1e-4;
+  const double reach_grown = max_displacement(T, turned(1e-4), leaf_bounds(*grown.map)) / 1e-4;
+  ASSERT_GT(reach_grown, 1.1 * reach_fused) << "the grown part must reach farther from the origin";
+  const double angle = 2.0 * half_voxel / (reach_fused + reach_grown);
+  ASSERT_LT(max_displacement(T, turned(angle), fused_box), half_voxel);
+  ASSERT_GT(max_displacement(T, turned(angle), leaf_bounds(*grown.map)), half_voxel);
+  Eigen::Matrix4d shifted = T;
+  shifted(0, 3) += 0.01;
+  Eigen::Matrix4d far = T;
+  far(1, 3) += 0.3;
+
+  struct Case {
+    const char* name;
+    Eigen::Matrix4d pose;
+    bool kept;
+  };
+  for (const Case& c : {Case{"1 cm", shifted, true}, Case{"turn", turned(angle), false}, Case{"30 cm", far, false}}) {
+    SCOPED_TRACE(c.name);
+    GlobalFusion g(res);
+    ASSERT_TRUE(g.set("r2", first, T).ok);
+    const GlobalFuseResult r = g.set("r2", next, c.pose, half_voxel);
+    ASSERT_TRUE(r.ok);
+    EXPECT_EQ(r.kept_pose, c.kept);
+    EXPECT_EQ(r.incremental, c.kept);
+    EXPECT_TRUE(*g.pose_of("r2") == (c.kept ? T : c.pose));
+    EXPECT_TRUE(contains(*g.extent_of("r2"), leaf_bounds(*grown.map)));
+    EXPECT_TRUE(g.encode().bt == fresh_encoding(c.kept ? T : c.pose)) << "differs from a fusion at the pose it reports";
+    EXPECT_FALSE(next->has_tree());
+  }
+  // Without keep_pose_within, any new pose fuses the map whole at that pose.
+  GlobalFusion exact(res);
+  ASSERT_TRUE(exact.set("r2", first, T).ok);
+  const GlobalFuseResult r = exact.set("r2", next, shifted);
+  EXPECT_FALSE(r.kept_pose);
+  EXPECT_TRUE(*exact.pose_of("r2") == shifted);
+  EXPECT_TRUE(exact.encode().bt == fresh_encoding(shifted));
 }
 
 TEST_F(GlobalFusionTest, OneThreadOrSeveralGiveTheSameBytes) {

@@ -1,5 +1,6 @@
 #include "mapmerge/map/bounds.hpp"
 
+#include <algorithm>
 #include <array>
 #include <cstdint>
 
@@ -84,6 +85,17 @@ Eigen::AlignedBox3d leaf_bounds(const HeldMap& map) {
   detail::for_each_binary_leaf(*body, [&](unsigned, unsigned depth, std::uint32_t x, std::uint32_t y,
                                           std::uint32_t z) { walk.leaf({x, y, z}, (1U << kTreeDepth) >> depth); });
   return walk.box(map.resolution());
+}
+
+double max_displacement(const Eigen::Matrix4d& a, const Eigen::Matrix4d& b, const Eigen::AlignedBox3d& box) {
+  if (box.isEmpty()) return 0.0;
+  const Eigen::Matrix4d d = b - a;
+  double worst = 0.0;
+  for (int i = 0; i < 8; ++i) {
+    const Eigen::Vector3d p = box.corner(static_cast<Eigen::AlignedBox3d::CornerType>(i));
+    worst = std::max(worst, (d.topLeftCorner<3, 3>() * p + d.topRightCorner<3, 1>()).norm());
+  }
+  return worst;
 }
 
 }  // namespace mapmerge

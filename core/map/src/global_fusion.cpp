@@ -11,6 +11,7 @@
 #include <unordered_map>
 
 #include "leaf_mapper.hpp"
+#include "mapmerge/map/bounds.hpp"
 #include "mapmerge/map/map_io.hpp"
 #include "morton.hpp"
 #include "parallel.hpp"
@@ -29,6 +30,13 @@ double seconds_since(std::chrono::steady_clock::time_point t0) {
 /// One robot's packed evidence for a leaf of log-odds `v` (0: ignored, as fuse_into ignores it).
 std::int64_t evidence(float v, const FuseConfig& config) {
   return v < 0.0F && !config.fuse_free ? 0 : detail::pack_evidence(v);
+}
+
+/// Grows `box` by the cube of `size` [m] about `centre`.
+void grow(Eigen::AlignedBox3d& box, const Eigen::Vector3d& centre, double size) {
+  const Eigen::Vector3d half = Eigen::Vector3d::Constant(0.5 * size);
+  box.extend(centre - half);
+  box.extend(centre + half);
 }
 
 /// A region of a robot map's frame whose evidence changed, as a cube of the map's grid.
@@ -489,9 +497,16 @@ std::shared_ptr<const HeldMap> GlobalFusion::map_of(const std::string& robot) co
   return it == robots_.end() ? nullptr : it->second.map;
 }
 
+std::optional<Eigen::AlignedBox3d> GlobalFusion::extent_of(const std::string& robot) const {
+  const auto it = robots_.find(robot);
+  if (it == robots_.end()) return std::nullopt;
+  return it->second.extent;
+}
+
 std::size_t GlobalFusion::memory_usage() const { return sums_->memoryUsage(); }
 
-void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stats, bool body_checked) {
+void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stats, bool body_checked,
+                            Eigen::AlignedBox3d* extent) {
   const Eigen::Matrix4d& T = entry.T_global_robot;
   FuseResult counts;
   double work = 0.0;
@@ -501,6 +516,7 @@ void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stat
   std::vector<ChangedCube> run;
   const auto add = [&](const ChangedCube& cube) {
     ++stats.cubes;
+    if (extent) grow(*extent, cube.centre, cube.size);
     run.push_back(cube);
     if (run.size() < kRun) return;
     map_cubes(*sums_, T, resolution_, run, threads_, counts);
@@ -525,6 +541,7 @@ void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stat
       continue;
     }
     ++stats.cubes;  // a leaf finer than the grid: voted per voxel
+    if (extent) grow(*extent, c, it.getSize());
     const Eigen::Vector3d ct = T.topLeftCorner<3, 3>() * c + T.topRightCorner<3, 1>();
     octomap::OcTreeKey key;
     if (!sums_->coordToKeyChecked(ct.x(), ct.y(), ct.z(), key)) continue;
@@ -537,12 +554,13 @@ void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stat
   stats.block_updates += counts.block_updates;
 }
 
-bool GlobalFusion::add_difference(const Entry& before, const Entry& after, GlobalFuseResult& stats) {
+GlobalFusion::Difference GlobalFusion::add_difference(const Entry& before, Entry& after, double keep_pose_within,
+                                                     GlobalFuseResult& stats) {
   const auto t0 = std::chrono::steady_clock::now();
   std::vector<ChangedCube> cubes;
   double work = 0.0;
-  bool done = false;
-  if (before.map->binary_body() && after.map->binary_body()) {
+  bool done = before.map == after.map;  // only the pose is new: nothing changed
+  if (!done && before.map->binary_body() && after.map->binary_body()) {
     BodyDiff diff(before.map.get(), after.map.get(), resolution_, config_);
     if (diff.run()) {
       cubes = std::move(diff.cubes);
@@ -557,12 +575,21 @@ bool GlobalFusion::add_difference(const Entry& before, const Entry& after, Globa
     cubes = std::move(diff.cubes);
     work = diff.work;
   }
+  after.extent = before.extent;
+  for (const ChangedCube& c : cubes) grow(after.extent, c.centre, c.size);
   stats.work = work;
   stats.diff_s += seconds_since(t0);
   if (work > config_.max_work) {
     stats.reason = "map would cost ~" + std::to_string(static_cast<long long>(work)) +
                    " voxel visits, more than max_work (huge pruned leaves?)";
-    return false;
+    return Difference::kRefused;
+  }
+  if (after.T_global_robot != before.T_global_robot) {
+    if (!(max_displacement(before.T_global_robot, after.T_global_robot, after.extent) < keep_pose_within)) {
+      return Difference::kTooFar;
+    }
+    after.T_global_robot = before.T_global_robot;
+    stats.kept_pose = true;
   }
   const auto t1 = std::chrono::steady_clock::now();
   FuseResult counts;
@@ -571,7 +598,7 @@ bool GlobalFusion::add_difference(const Entry& before, const Entry& after, Globa
   stats.cubes += cubes.size();
   stats.voxel_updates += counts.voxel_updates;
   stats.block_updates += counts.block_updates;
-  return true;
+  return Difference::kPlaced;
 }
 
 GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<const octomap::OcTree> map,
@@ -582,26 +609,29 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
 }
 
 GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<const HeldMap> map,
-                                   const Eigen::Matrix4d& T_global_robot) {
+                                   const Eigen::Matrix4d& T_global_robot, double keep_pose_within) {
   GlobalFuseResult r;
   r.reason = map ? detail::check_rigid(T_global_robot, config_.rigid_tolerance) : "no map";
   if (!r.reason.empty()) {
     remove(robot);
     return r;
   }
-  Entry next{std::move(map), T_global_robot};
+  Entry next{std::move(map), T_global_robot, Eigen::AlignedBox3d()};
   const auto it = robots_.find(robot);
   if (it != robots_.end() && it->second.map == next.map && it->second.T_global_robot == T_global_robot) {
     r.ok = true;
     return r;
   }
-  const bool same_grid = it != robots_.end() && it->second.T_global_robot == T_global_robot &&
+  const bool same_grid = it != robots_.end() &&
+                         (it->second.T_global_robot == T_global_robot || keep_pose_within > 0.0) &&
                          it->second.map->resolution() == next.map->resolution() &&
                          next.map->resolution() >= resolution_ * (1 - 1e-9);
-  if (same_grid) {
-    r.ok = add_difference(it->second, next, r);
+  const Difference diff = same_grid ? add_difference(it->second, next, keep_pose_within, r) : Difference::kTooFar;
+  if (diff != Difference::kTooFar) {
+    r.ok = diff == Difference::kPlaced;
     r.incremental = r.ok;
   } else {
+    r.from_bodies = false;  // fused whole
     const auto t0 = std::chrono::steady_clock::now();
     double work = 0.0;
     const bool body = whole_body(*next.map, false, resolution_, config_, nullptr, work);
@@ -615,7 +645,8 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
     } else {
       const auto t1 = std::chrono::steady_clock::now();
       if (it != robots_.end()) add_full(it->second, -1, r);
-      add_full(next, +1, r, body);
+      next.extent.setEmpty();
+      add_full(next, +1, r, body, &next.extent);
       r.place_s += seconds_since(t1);
     }
   }

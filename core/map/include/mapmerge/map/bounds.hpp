@@ -1,5 +1,5 @@
 #pragma once
-/// The extent of an octree's leaves.
+/// The extent of an octree's leaves, and how far a box moves between two poses.
 
 #include <Eigen/Geometry>
 #include <octomap/OcTree.h>
@@ -18,5 +18,10 @@ Eigen::AlignedBox3d leaf_bounds(const octomap::OcTree& tree);
 /// The same box for a held map, read off its binary body when its tree is not built (one pass
 /// over the bytes; the tree is not built).
 Eigen::AlignedBox3d leaf_bounds(const HeldMap& map);
+
+/// The largest distance [m] between where `a` and where `b` (rigid 4x4 transforms) put a point
+/// of `box`: the difference is affine in the point, so its largest norm is at a corner. 0 for an
+/// empty box.
+double max_displacement(const Eigen::Matrix4d& a, const Eigen::Matrix4d& b, const Eigen::AlignedBox3d& box);
 
 }  // namespace mapmerge

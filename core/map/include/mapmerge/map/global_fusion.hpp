@@ -21,6 +21,7 @@
 #include <vector>
 
 #include <Eigen/Core>
+#include <Eigen/Geometry>
 #include <octomap/OcTree.h>
 
 #include "mapmerge/map/fusion.hpp"
@@ -59,6 +60,9 @@ struct GlobalFuseResult {
   std::size_t block_updates = 0;
   double diff_s = 0.0;   ///< wall time finding what changed (the difference walk, a body's check)
   double place_s = 0.0;  ///< wall time placing the changed leaves on the global grid
+  /// The map was fused by difference at the robot's fused pose, not at the one asked for, which
+  /// moves none of its voxels by keep_pose_within or more (pose_of() says which pose is fused).
+  bool kept_pose = false;
 };
 
 /// The fleet's global map, kept up to date one robot at a time. Not thread-safe: one owner.
@@ -78,8 +82,14 @@ class GlobalFusion {
   /// map's difference is read off the two bodies (one pass over bytes, several times faster than
   /// walking both trees, same result) and neither map's tree is built; a new pose or resolution
   /// needs the trees (HeldMap::tree builds them).
+  ///
+  /// `keep_pose_within` [m] (> 0): when the robot is fused at a pose T0 of the same resolution
+  /// and T0 and `T_global_robot` put no point of its fused and new leaves (extent_of() and the
+  /// difference's cubes) keep_pose_within or more apart, the new map is fused by its difference
+  /// at T0 (GlobalFuseResult::kept_pose): a refinement's sub-voxel correction costs no whole
+  /// re-fusion. The difference is found before the test; a larger move fuses the map whole.
   GlobalFuseResult set(const std::string& robot, std::shared_ptr<const HeldMap> map,
-                       const Eigen::Matrix4d& T_global_robot);
+                       const Eigen::Matrix4d& T_global_robot, double keep_pose_within = 0.0);
   /// The same for a decoded map; `binary_body`: the validated body it was decoded from
   /// (DecodeResult::binary_body), or null.
   GlobalFuseResult set(const std::string& robot, std::shared_ptr<const octomap::OcTree> map,
@@ -98,6 +108,10 @@ class GlobalFusion {
   std::optional<Eigen::Matrix4d> pose_of(const std::string& robot) const;
   /// The map `robot` is fused with (null for a robot not fused).
   std::shared_ptr<const HeldMap> map_of(const std::string& robot) const;
+  /// A box [m, robot frame] holding every leaf `robot` put evidence in (nullopt for a robot not
+  /// fused): exact after a whole fusion, grown by each difference's cubes after that (a leaf
+  /// that lost its evidence may still be inside). No walk of the map.
+  std::optional<Eigen::AlignedBox3d> extent_of(const std::string& robot) const;
   /// Robots in the global map, sorted.
   std::vector<std::string> robots() const;
   double resolution() const { return resolution_; }
@@ -136,10 +150,17 @@ class GlobalFusion {
   struct Entry {
     std::shared_ptr<const HeldMap> map;
     Eigen::Matrix4d T_global_robot;
+    Eigen::AlignedBox3d extent;  ///< extent_of()
   };
   /// `body_checked`: the entry's binary body was just scanned whole (as in set()): not again.
-  void add_full(const Entry& entry, int sign, GlobalFuseResult& stats, bool body_checked = false);
-  bool add_difference(const Entry& before, const Entry& after, GlobalFuseResult& stats);
+  /// `extent`: grown by every cube placed (null: not kept).
+  void add_full(const Entry& entry, int sign, GlobalFuseResult& stats, bool body_checked = false,
+                Eigen::AlignedBox3d* extent = nullptr);
+  enum class Difference { kPlaced, kRefused, kTooFar };
+  /// Places what changed from `before` to `after` at `after`'s pose, or at `before`'s when
+  /// `keep_pose_within` > 0 and the poses are that close over the leaves (then `after` gets
+  /// before's pose). kTooFar: the poses differ and are not that close (nothing placed).
+  Difference add_difference(const Entry& before, Entry& after, double keep_pose_within, GlobalFuseResult& stats);
 
   double resolution_;
   FuseConfig config_;
