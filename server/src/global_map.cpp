@@ -31,17 +31,6 @@ double global_resolution(const Registry& registry, const ServerConfig& config, c
   return res;
 }
 
-/// How far [m] a point of `box` (robot frame) lands apart under T_global_robot `a` and `b`.
-double max_displacement(const Eigen::Matrix4d& a, const Eigen::Matrix4d& b, const Eigen::AlignedBox3d& box) {
-  const Eigen::Matrix4d d = b - a;  // affine in the point: its largest norm is at a corner
-  double worst = 0.0;
-  for (int i = 0; i < 8; ++i) {
-    const Eigen::Vector3d p = box.corner(static_cast<Eigen::AlignedBox3d::CornerType>(i));
-    worst = std::max(worst, (d.topLeftCorner<3, 3>() * p + d.topRightCorner<3, 1>()).norm());
-  }
-  return worst;
-}
-
 }  // namespace
 
 std::vector<PlacedMap> GlobalMapBuilder::placed_maps(const Registry& registry,
@@ -52,11 +41,21 @@ std::vector<PlacedMap> GlobalMapBuilder::placed_maps(const Registry& registry,
     if (!rec || !rec->map) continue;
     if (!config_.merge.keep_lost_maps && !registry.presence(robot).alive) continue;  // gone: left out
     Eigen::Matrix4d T = pose.T_global_robot;
+    double keep = 0.0;
     const auto fused = fusion_ ? fusion_->pose_of(robot) : std::nullopt;
-    if (fused && (*fused == T || max_displacement(*fused, T, extent(robot, rec->map)) < 0.5 * fusion_->resolution())) {
-      T = *fused;  // no voxel of the map would move by half a voxel: keep what is fused
+    if (fused && *fused != T) {
+      const double half_voxel = 0.5 * fusion_->resolution();
+      if (max_displacement(*fused, T, *fusion_->extent_of(robot)) < half_voxel) {
+        // No voxel of what is fused moves by half a voxel: keep the fused pose. A new map's leaves
+        // are checked too, by GlobalFusion::set, after it has found the difference.
+        if (fusion_->map_of(robot) == rec->map) {
+          T = *fused;
+        } else {
+          keep = half_voxel;
+        }
+      }
     }
-    maps.push_back(PlacedMap{robot, rec->map, T});
+    maps.push_back(PlacedMap{robot, rec->map, T, keep});
     contributors.push_back(Contribution{robot, rec->session_id, rec->sequence});
   }
   return maps;
@@ -71,8 +70,8 @@ bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Con
     const auto fused = fusion_->pose_of(m.robot);
     any_fused |= fused.has_value();
     if (fusion_->holds(m.robot, m.map.get(), m.T_global_robot)) continue;
-    if (fused && *fused == m.T_global_robot) {
-      grown = true;
+    if (fused && (*fused == m.T_global_robot || m.keep_pose_within > 0.0)) {
+      grown = true;  // (a kept pose that set() finds too far after all is moved in this build)
     } else {
       (fused ? moved : moves).push_back(i);
     }
@@ -99,27 +98,20 @@ bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Con
   for (std::size_t i = maps.size(); i-- > 0;) {
     if (keep[i]) continue;
     const auto fused = fusion_->pose_of(maps[i].robot);
-    if (fused) {  // as it is fused now, with the contribution fused then
-      maps[i].map = fusion_->map_of(maps[i].robot);
+    if (fused) {  // at its fused pose: the new map by difference there, else the map fused then
+      const auto held = fusion_->map_of(maps[i].robot);
       maps[i].T_global_robot = *fused;
-      const auto c = fused_contributions_.find(maps[i].robot);
-      if (c != fused_contributions_.end()) contributors[i] = c->second;
+      if (held->resolution() != maps[i].map->resolution()) {
+        maps[i].map = held;
+        const auto c = fused_contributions_.find(maps[i].robot);
+        if (c != fused_contributions_.end()) contributors[i] = c->second;
+      }
     } else {  // not yet in the global map: a next build fuses it
       maps.erase(maps.begin() + static_cast<std::ptrdiff_t>(i));
       contributors.erase(contributors.begin() + static_cast<std::ptrdiff_t>(i));
     }
   }
   return true;
-}
-
-const Eigen::AlignedBox3d& GlobalMapBuilder::extent(const std::string& robot,
-                                                    const std::shared_ptr<const HeldMap>& map) {
-  auto& [held, box] = extents_[robot];
-  if (held.lock() != map) {
-    box = leaf_bounds(*map);
-    held = map;
-  }
-  return box;
 }
 
 std::optional<GlobalMapOut> GlobalMapBuilder::build(const Registry& registry, std::uint64_t version) {

@@ -99,7 +99,7 @@ GlobalSync sync_global(GlobalFusion& fusion, const std::vector<PlacedMap>& maps,
     const auto r = refused.find(m.robot);
     if (r != refused.end() && r->second.first.lock() == m.map && r->second.second == m.T_global_robot) continue;
     try {
-      const GlobalFuseResult res = fusion.set(m.robot, m.map, m.T_global_robot);  // !ok: robot left out
+      const GlobalFuseResult res = fusion.set(m.robot, m.map, m.T_global_robot, m.keep_pose_within);  // !ok: left out
       if (!res.ok) throw MapError(res.reason);
       refused.erase(m.robot);
       out.fused.push_back(m.robot);

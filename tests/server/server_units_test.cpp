@@ -975,15 +975,25 @@ TEST(GlobalMapBuilder, AGrownMapIsPublishedBeforeAMovedOneIsFusedAgain) {
   registry.put_edge(Edge{"r1", "r2", T2.inverse(), 0.02});
   GlobalMapBuilder builder(config);
   ASSERT_TRUE(builder.build(registry, 1));
-  // r1 grows while r2 grows and is moved by 0.3 m: r1's difference goes out first.
+  // r1 grows while r2 grows and is moved by 0.3 m: both differences go out first, r2's at its
+  // fused pose; r2's move waits for the next build.
   registry.put_map(record_of(r1_grown, 2));
   registry.put_map(record_of(r2_grown, 2));
   registry.put_edge(Edge{"r1", "r2", mapmerge::paper_transform(0.3, 0, 0, 0, 0, 0) * T2.inverse(), 0.02});
   const auto first = builder.build(registry, 2);
   ASSERT_TRUE(first);
   EXPECT_TRUE(builder.deferred());
-  EXPECT_EQ(builder.last_stages().incremental, 1u);
-  for (const Contribution& c : first->contributors) EXPECT_EQ(c.sequence, c.robot_id == "r1" ? 2u : 1u) << c.robot_id;
+  EXPECT_EQ(builder.last_stages().updated, 2u);
+  EXPECT_EQ(builder.last_stages().incremental, 2u);
+  for (const Contribution& c : first->contributors) EXPECT_EQ(c.sequence, 2u) << c.robot_id;
+  Registry unmoved;  // the grown maps at the poses fused before
+  unmoved.claim_reference("r1");
+  unmoved.put_map(record_of(r1_grown, 2));
+  unmoved.put_map(record_of(r2_grown, 2));
+  unmoved.put_edge(Edge{"r1", "r2", T2.inverse(), 0.02});
+  const auto at_fused_poses = GlobalMapBuilder(config).build(unmoved, 2);
+  ASSERT_TRUE(at_fused_poses);
+  EXPECT_TRUE(first->data == at_fused_poses->data) << "r2's grown map is not fused at its fused pose";
   // r1 grows again before the next build: the move is not held back a second time.
   registry.put_map(record_of(r1_grown_again, 3));
   const auto second = builder.build(registry, 3);

@@ -61,19 +61,19 @@ class GlobalMapBuilder {
   std::vector<PlacedMap> placed_maps(const Registry& registry, std::vector<Contribution>& contributors);
   const ServerConfig& config_;
   std::unique_ptr<GlobalFusion> fusion_;
-  const Eigen::AlignedBox3d& extent(const std::string& robot, const std::shared_ptr<const HeldMap>& map);
   /// Maps to fuse whole (new robot, new pose) beyond publish.move_nodes_per_build (at least one),
   /// or all of them when some maps only grew and the last build did not hold all back too (grown
-  /// maps reach the fleet first), are kept as fused for this build; true if any was. A first
+  /// maps reach the fleet first), are held back for this build; true if any was. A held-back
+  /// robot that is fused keeps its fused pose, with its new map fused by difference there when
+  /// the resolution is the same (its update's content goes out now, its move later). A first
   /// fusion is whole.
   bool defer_moves(std::vector<PlacedMap>& maps, std::vector<Contribution>& contributors);
   RefusedMaps refused_;
   std::map<std::string, Contribution> fused_contributions_;  ///< per robot: the map version fused
   bool deferred_ = false;
-  bool moves_held_ = false;
+  bool moves_held_ = false;  ///< the last build fused no move, to publish grown maps first
   bool unchanged_ = false;
-  std::vector<Contribution> last_contributors_;  ///< of the last version built  ///< the last build fused no move, to publish grown maps first
-  std::map<std::string, std::pair<std::weak_ptr<const HeldMap>, Eigen::AlignedBox3d>> extents_;  ///< per robot
+  std::vector<Contribution> last_contributors_;  ///< of the last version built
   Stages stages_;
   std::vector<std::shared_ptr<const HeldMap>> replaced_;  ///< maps the last build replaced
   std::optional<std::pair<std::uint64_t, std::uint64_t>> last_built_;  ///< version and hash the fusion last encoded

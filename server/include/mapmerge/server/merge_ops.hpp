@@ -53,6 +53,9 @@ struct PlacedMap {
   std::string robot;                 ///< robot id (for skip reports)
   std::shared_ptr<const HeldMap> map;
   Eigen::Matrix4d T_global_robot = Eigen::Matrix4d::Identity();
+  /// GlobalFusion::set's keep_pose_within [m]: a fused robot whose map changed is fused at its
+  /// fused pose when no leaf of the map lands this far from where T_global_robot puts it.
+  double keep_pose_within = 0.0;
 };
 
 /// Whether `after` is more than `translation` [m] or `rotation_deg` [deg] away from `before`.
