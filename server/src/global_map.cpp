@@ -73,6 +73,11 @@ bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Con
     if (fused && (*fused == m.T_global_robot || m.keep_pose_within > 0.0)) {
       grown = true;  // (a kept pose that set() finds too far after all is moved in this build)
     } else {
+      // A moved robot with a new map of the same resolution: its content can go out first.
+      if (fused && fusion_->map_of(m.robot)->resolution() == m.map->resolution() &&
+          fusion_->map_of(m.robot) != m.map) {
+        grown = true;
+      }
       (fused ? moved : moves).push_back(i);
     }
   }

@@ -1006,6 +1006,55 @@ TEST(GlobalMapBuilder, AGrownMapIsPublishedBeforeAMovedOneIsFusedAgain) {
   EXPECT_TRUE(second->data == expected->data) << "after the deferred move, the map differs from a fresh build";
 }
 
+TEST(GlobalMapBuilder, AMovedRobotsNewMapGoesOutAtItsFusedPoseBeforeItsMove) {
+  // A refinement both grows r2's map and moves r2 by 0.3 m: its whole re-fusion would hold its
+  // update back, so the first build fuses the new map's difference at the fused pose, the next
+  // one the move.
+  const auto world = test::load_data_map("geb079.bt");
+  const Eigen::Matrix4d T2 = mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155);
+  const auto r1 = test::cut_robot_map(*world, "r1", box(-8, 12), Eigen::Matrix4d::Identity());
+  const auto r2 = test::cut_robot_map(*world, "r2", box(4, 24), T2);
+  const auto r2_grown = test::cut_robot_map(*world, "r2", box(4, 30), T2);
+  // A builder of its own, fed one registry: a fresh build of `second` at r2's pose moved by `move`.
+  const auto fresh = [&](const test::RobotMap& second, std::uint64_t sequence, const Eigen::Matrix4d& move,
+                         std::uint64_t version) {
+    Registry r;
+    r.claim_reference("r1");
+    r.put_map(record_of(r1, 1));
+    r.put_map(record_of(second, sequence));
+    r.put_edge(Edge{"r1", "r2", move * T2.inverse(), 0.02});
+    return GlobalMapBuilder(ServerConfig{}).build(r, version);
+  };
+  const Eigen::Matrix4d shift = mapmerge::paper_transform(0.3, 0, 0, 0, 0, 0);
+  ServerConfig config;
+  GlobalMapBuilder builder(config);
+  Registry registry;
+  registry.claim_reference("r1");
+  registry.put_map(record_of(r1, 1));
+  registry.put_map(record_of(r2, 1));
+  registry.put_edge(Edge{"r1", "r2", T2.inverse(), 0.02});
+  ASSERT_TRUE(builder.build(registry, 1));
+  registry.put_map(record_of(r2_grown, 2));
+  registry.put_edge(Edge{"r1", "r2", shift * T2.inverse(), 0.02});
+  const auto first = builder.build(registry, 2);
+  ASSERT_TRUE(first);
+  EXPECT_TRUE(builder.deferred());
+  EXPECT_EQ(builder.last_stages().updated, 1u);
+  EXPECT_EQ(builder.last_stages().incremental, 1u);
+  for (const Contribution& c : first->contributors) EXPECT_EQ(c.sequence, c.robot_id == "r2" ? 2u : 1u) << c.robot_id;
+  const auto at_fused_pose = fresh(r2_grown, 2, Eigen::Matrix4d::Identity(), 2);
+  ASSERT_TRUE(at_fused_pose);
+  EXPECT_TRUE(first->data == at_fused_pose->data) << "r2's new map is not fused at its fused pose";
+  const auto second = builder.build(registry, 3);
+  ASSERT_TRUE(second);
+  EXPECT_FALSE(builder.deferred());
+  EXPECT_EQ(builder.last_stages().updated, 1u);
+  EXPECT_EQ(builder.last_stages().incremental, 0u);
+  const auto moved = fresh(r2_grown, 2, shift, 3);
+  ASSERT_TRUE(moved);
+  EXPECT_TRUE(second->data == moved->data) << "after the deferred move, the map differs from a fresh build";
+}
+
 TEST(GlobalMapBuilder, MovedRobotsAreFusedAgainWithinTheBuildsNodeBudgetUntilAllAre) {
   const auto world = test::load_data_map("geb079.bt");
   const Eigen::Matrix4d T2 = mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155);

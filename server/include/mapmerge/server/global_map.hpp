@@ -65,7 +65,8 @@ class GlobalMapBuilder {
   /// or all of them when some maps only grew and the last build did not hold all back too (grown
   /// maps reach the fleet first), are held back for this build; true if any was. A held-back
   /// robot that is fused keeps its fused pose, with its new map fused by difference there when
-  /// the resolution is the same (its update's content goes out now, its move later). A first
+  /// the resolution is the same (its update's content goes out now, its move later); a moved robot
+  /// with a new map of the same resolution counts as grown. A first
   /// fusion is whole.
   bool defer_moves(std::vector<PlacedMap>& maps, std::vector<Contribution>& contributors);
   RefusedMaps refused_;
