@@ -70,7 +70,7 @@ Counts check_direction(const PreparedMap::Impl& from, const PreparedMap::Impl& t
         pcl::Indices idx(1);
         std::vector<float> d2(1);
         for (std::size_t s = r.begin(); s < r.end(); ++s) {
-          Point p;
+          FullPoint p;
           p.getVector4fMap() = T * (*from.full)[s * step].getVector4fMap();
           ++acc.checked;
           const bool near = to.full_tree->radiusSearch(p, reach, idx, d2, 1) >= 1;
@@ -226,7 +226,7 @@ Normal6 icp_system(const Cloud& src, std::size_t step, const Cloud& tgt,
 
 /// Full-resolution source points that have a target point within `dmax` under T0: ICP spends
 /// its budget on the overlap only (at 10 % overlap most of a map has no partner).
-Cloud overlap_sample(const Cloud& full, const SerialKdTree<Point>& tree, const Eigen::Matrix4d& T0,
+Cloud overlap_sample(const FullCloud& full, const SerialKdTree<Point>& tree, const Eigen::Matrix4d& T0,
                      double dmax, std::size_t max_points) {
   const std::size_t probe_step = std::max<std::size_t>(1, full.size() / (2 * max_points));
   const Eigen::Matrix4f T = T0.cast<float>();
@@ -237,7 +237,13 @@ Cloud overlap_sample(const Cloud& full, const SerialKdTree<Point>& tree, const E
   for (std::size_t i = 0; i < full.size(); i += probe_step) {
     Point p;
     p.getVector4fMap() = T * full[i].getVector4fMap();
-    if (tree.radiusSearch(p, dmax, idx, d2, 1) == 1 && d2[0] <= dmax2) kept.push_back(full[i]);
+    if (tree.radiusSearch(p, dmax, idx, d2, 1) == 1 && d2[0] <= dmax2) {
+      Point q;  // with a zero normal: ICP reads the target's planes only
+      q.getVector3fMap() = full[i].getVector3fMap();
+      q.intensity = full[i].intensity;
+      q.normal_x = q.normal_y = q.normal_z = q.curvature = 0.0F;
+      kept.push_back(q);
+    }
   }
   if (kept.size() <= max_points) return kept;
   Cloud out;

@@ -2,6 +2,7 @@
 #include <chrono>
 #include <mutex>
 #include <stdexcept>
+#include <type_traits>
 
 #include <pcl/console/print.h>
 #include <pcl/features/fpfh.h>
@@ -29,14 +30,16 @@ double ms_since(Clock::time_point t0) {
   return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
 }
 
-Cloud::Ptr to_cloud(const std::vector<OccupiedPoint>& points) {
-  auto cloud = std::make_shared<Cloud>();
+/// Stage 1's points as a cloud of `P` (intensity = occupancy; a normal, if any, zero).
+template <class P>
+typename pcl::PointCloud<P>::Ptr to_cloud(const std::vector<OccupiedPoint>& points) {
+  auto cloud = std::make_shared<pcl::PointCloud<P>>();
   cloud->reserve(points.size());
   for (const auto& p : points) {
-    Point q;
+    P q;
     q.getVector3fMap() = p.position;
     q.intensity = p.occupancy;
-    q.normal_x = q.normal_y = q.normal_z = q.curvature = 0.0F;
+    if constexpr (std::is_same_v<P, Point>) q.normal_x = q.normal_y = q.normal_z = q.curvature = 0.0F;
     cloud->push_back(q);
   }
   return cloud;
@@ -276,11 +279,11 @@ PreparedMap prepare_stages(const octomap::OcTree& tree, const AlignConfig& confi
   m->timings.to_points_ms = ms_since(t0);
 
   t0 = Clock::now();
-  m->full = to_cloud(points);
-  m->full_tree = std::make_shared<SerialKdTree<Point>>();
+  m->full = to_cloud<FullPoint>(points);
+  m->full_tree = std::make_shared<SerialKdTree<FullPoint>>();
   m->full_tree->setInputCloud(m->full);
   const LengthUnits units = length_units(m->resolution, config);
-  m->cloud = preprocess(m->full, config.preprocess, units);
+  m->cloud = preprocess(to_cloud<Point>(points), config.preprocess, units);
   if (m->cloud->size() < 10) throw std::invalid_argument("map has fewer than 10 points after preprocessing");
   // The ICP cloud's broad normals serve align()'s candidates; refine() and the last pass fit
   // fine ones on the cropped target themselves, so a map prepared for refine() has none.

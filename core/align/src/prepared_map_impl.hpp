@@ -21,6 +21,10 @@ namespace mapmerge::align {
 
 using Point = pcl::PointXYZINormal;  ///< position, intensity = occupancy probability, normal
 using Cloud = pcl::PointCloud<Point>;
+/// A stage-1 voxel as held for validation and ICP's source: no normal (32 B a point, not 48;
+/// the full-resolution points are the largest part of a prepared map).
+using FullPoint = pcl::PointXYZI;
+using FullCloud = pcl::PointCloud<FullPoint>;
 using Fpfh = pcl::FPFHSignature33;
 using Shot = pcl::SHOT352;
 
@@ -28,8 +32,8 @@ struct PreparedMap::Impl {
   double resolution = 0.0;
   std::shared_ptr<const LeafSet> free_space;    ///< the map's free leaves: validation's conflicts
   std::size_t num_points = 0;                   ///< occupied voxels of stage 1
-  Cloud::Ptr full;                               ///< stage 1 at full resolution (validation)
-  SerialKdTree<Point>::Ptr full_tree;            ///< kd-tree over `full`
+  FullCloud::Ptr full;                           ///< stage 1 at full resolution (validation, ICP's source)
+  SerialKdTree<FullPoint>::Ptr full_tree;        ///< kd-tree over `full`
   Cloud::Ptr cloud;                              ///< stage 2 output, with occupancy (and broad normals when prepared with features)
   Cloud::Ptr coarse;                             ///< `cloud` at the describe voxel: keypoints, descriptors
   Cloud::Ptr keypoints;                          ///< stage 4, only those with a valid descriptor

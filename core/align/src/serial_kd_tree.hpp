@@ -50,30 +50,38 @@ class SerialKdTree final : public pcl::search::Search<PointT> {
     this->indices_ = indices;
     index_.reset();
     ids_.clear();
-    data_.clear();
+    size_ = 0;
     if (!cloud) return;
     const std::size_t n = indices ? indices->size() : cloud->size();
-    data_.reserve(n * static_cast<std::size_t>(dim_));
+    std::vector<float> data;  // the build's input; the index keeps its own copy (below)
+    data.reserve(n * static_cast<std::size_t>(dim_));
     ids_.reserve(n);
+    bool identity = true;
     for (std::size_t k = 0; k < n; ++k) {
       const auto i = indices ? (*indices)[k] : static_cast<pcl::index_t>(k);
       const PointT& p = (*cloud)[static_cast<std::size_t>(i)];
       if (!repr_.isValid(p)) continue;
+      identity &= static_cast<std::size_t>(i) == ids_.size();
       ids_.push_back(i);
-      data_.resize(data_.size() + static_cast<std::size_t>(dim_));
-      float* out = data_.data() + data_.size() - static_cast<std::size_t>(dim_);
+      data.resize(data.size() + static_cast<std::size_t>(dim_));
+      float* out = data.data() + data.size() - static_cast<std::size_t>(dim_);
       repr_.vectorize(p, out);
     }
-    if (ids_.empty()) return;
-    index_ = std::make_unique<Index>(flann::Matrix<float>(data_.data(), ids_.size(), static_cast<std::size_t>(dim_)),
-                                     flann::KDTreeSingleIndexParams(15));
+    size_ = ids_.size();
+    if (identity) std::vector<pcl::index_t>().swap(ids_);  // tree index == cloud index
+    if (size_ == 0) return;
+    // With `reorder`, the index copies the points in its leaves' order and searches that copy
+    // only (KDTreeSingleIndex::searchLevel); the input is read by the build alone, so it is let
+    // go of here: a cloud's tree holds one copy of its points, not two (12 B a point of 3D).
+    index_ = std::make_unique<Index>(flann::Matrix<float>(data.data(), size_, static_cast<std::size_t>(dim_)),
+                                     flann::KDTreeSingleIndexParams(15, /*reorder=*/true));
     index_->buildIndex();
   }
 
   /// The min(k, size) nearest points, nearest first; returns how many.
   int nearestKSearch(const PointT& point, int k, pcl::Indices& k_indices,
                      std::vector<float>& k_sqr_distances) const override {
-    const std::size_t n = std::min(static_cast<std::size_t>(std::max(k, 0)), ids_.size());
+    const std::size_t n = std::min(static_cast<std::size_t>(std::max(k, 0)), size_);
     k_indices.resize(n);
     k_sqr_distances.resize(n);
     if (n == 0) return 0;
@@ -91,10 +99,10 @@ class SerialKdTree final : public pcl::search::Search<PointT> {
                    std::vector<float>& k_sqr_distances, unsigned int max_nn = 0) const override {
     k_indices.clear();
     k_sqr_distances.clear();
-    if (ids_.empty()) return 0;
+    if (size_ == 0) return 0;
     const auto r2 = static_cast<float>(radius * radius);
     Query q(*this, point);
-    if (max_nn == 0 || max_nn >= ids_.size()) {
+    if (max_nn == 0 || max_nn >= size_) {
       thread_local std::vector<flann::DistanceIndex<float>> hits;  // reused: no allocation a query
       hits.clear();
       Within result(r2, hits);
@@ -103,7 +111,7 @@ class SerialKdTree final : public pcl::search::Search<PointT> {
       k_indices.reserve(hits.size());
       k_sqr_distances.reserve(hits.size());
       for (const auto& h : hits) {
-        k_indices.push_back(ids_[h.index_]);
+        k_indices.push_back(cloud_index(h.index_));
         k_sqr_distances.push_back(h.dist_);
       }
       return static_cast<int>(k_indices.size());
@@ -112,11 +120,14 @@ class SerialKdTree final : public pcl::search::Search<PointT> {
     return search(result, q, max_nn, this->sorted_results_, k_indices, k_sqr_distances);
   }
 
-  std::size_t size() const { return ids_.size(); }
+  std::size_t size() const { return size_; }
 
  private:
   using Index = flann::KDTreeSingleIndex<flann::L2_Simple<float>>;
   static constexpr std::size_t kHeapThreshold = 250;  // flann's KNN_HEAP_THRESHOLD
+  pcl::index_t cloud_index(std::size_t tree_index) const {
+    return ids_.empty() ? static_cast<pcl::index_t>(tree_index) : ids_[tree_index];
+  }
 
   class Query;
 
@@ -131,7 +142,7 @@ class SerialKdTree final : public pcl::search::Search<PointT> {
     k_sqr_distances.resize(n);
     if (n > 0) result.copy(found.data(), k_sqr_distances.data(), n, sorted);
     k_indices.resize(n);
-    for (std::size_t j = 0; j < n; ++j) k_indices[j] = ids_[found[j]];
+    for (std::size_t j = 0; j < n; ++j) k_indices[j] = cloud_index(found[j]);
     return static_cast<int>(n);
   }
 
@@ -167,8 +178,8 @@ class SerialKdTree final : public pcl::search::Search<PointT> {
   pcl::DefaultPointRepresentation<PointT> repr_;
   int dim_ = repr_.getNumberOfDimensions();
   flann::SearchParams params_{-1, 0.0F, true};  // exact search (eps 0), as pcl::KdTreeFLANN
-  std::vector<float> data_;
-  std::vector<pcl::index_t> ids_;  ///< tree index -> cloud index
+  std::size_t size_ = 0;            ///< points indexed
+  std::vector<pcl::index_t> ids_;  ///< tree index -> cloud index (empty: the same)
   std::unique_ptr<Index> index_;
 };
 
