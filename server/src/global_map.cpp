@@ -73,9 +73,8 @@ bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Con
     if (fused && (*fused == m.T_global_robot || m.keep_pose_within > 0.0)) {
       grown = true;  // (a kept pose that set() finds too far after all is moved in this build)
     } else {
-      // A moved robot with a new map of the same resolution: its content can go out first.
-      if (fused && fusion_->map_of(m.robot)->resolution() == m.map->resolution() &&
-          fusion_->map_of(m.robot) != m.map) {
+      // A moved robot with a new map its difference can fuse: its content can go out first.
+      if (fused && fusion_->map_of(m.robot) != m.map && fusion_->fuses_by_difference(m.robot, *m.map)) {
         grown = true;
       }
       (fused ? moved : moves).push_back(i);
@@ -104,10 +103,9 @@ bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Con
     if (keep[i]) continue;
     const auto fused = fusion_->pose_of(maps[i].robot);
     if (fused) {  // at its fused pose: the new map by difference there, else the map fused then
-      const auto held = fusion_->map_of(maps[i].robot);
       maps[i].T_global_robot = *fused;
-      if (held->resolution() != maps[i].map->resolution()) {
-        maps[i].map = held;
+      if (!fusion_->fuses_by_difference(maps[i].robot, *maps[i].map)) {
+        maps[i].map = fusion_->map_of(maps[i].robot);
         const auto c = fused_contributions_.find(maps[i].robot);
         if (c != fused_contributions_.end()) contributors[i] = c->second;
       }

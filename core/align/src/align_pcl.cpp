@@ -238,11 +238,8 @@ Cloud overlap_sample(const FullCloud& full, const SerialKdTree<Point>& tree, con
     Point p;
     p.getVector4fMap() = T * full[i].getVector4fMap();
     if (tree.radiusSearch(p, dmax, idx, d2, 1) == 1 && d2[0] <= dmax2) {
-      Point q;  // with a zero normal: ICP reads the target's planes only
-      q.getVector3fMap() = full[i].getVector3fMap();
-      q.intensity = full[i].intensity;
-      q.normal_x = q.normal_y = q.normal_z = q.curvature = 0.0F;
-      kept.push_back(q);
+      // Without a normal: ICP reads the target's planes only.
+      kept.push_back(Point(full[i].x, full[i].y, full[i].z, full[i].intensity));
     }
   }
   if (kept.size() <= max_points) return kept;

@@ -2,7 +2,6 @@
 #include <chrono>
 #include <mutex>
 #include <stdexcept>
-#include <type_traits>
 
 #include <pcl/console/print.h>
 #include <pcl/features/fpfh.h>
@@ -30,18 +29,12 @@ double ms_since(Clock::time_point t0) {
   return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
 }
 
-/// Stage 1's points as a cloud of `P` (intensity = occupancy; a normal, if any, zero).
+/// Stage 1's points as a cloud of `P` (intensity = occupancy; PCL's constructor zeroes a normal).
 template <class P>
 typename pcl::PointCloud<P>::Ptr to_cloud(const std::vector<OccupiedPoint>& points) {
   auto cloud = std::make_shared<pcl::PointCloud<P>>();
   cloud->reserve(points.size());
-  for (const auto& p : points) {
-    P q;
-    q.getVector3fMap() = p.position;
-    q.intensity = p.occupancy;
-    if constexpr (std::is_same_v<P, Point>) q.normal_x = q.normal_y = q.normal_z = q.curvature = 0.0F;
-    cloud->push_back(q);
-  }
+  for (const auto& p : points) cloud->push_back(P(p.position.x(), p.position.y(), p.position.z(), p.occupancy));
   return cloud;
 }
 

@@ -486,6 +486,15 @@ bool GlobalFusion::holds(const std::string& robot, const HeldMap* map,
   return it != robots_.end() && it->second.map.get() == map && it->second.T_global_robot == T;
 }
 
+bool GlobalFusion::fuses_by_difference(const std::string& robot, const HeldMap& map) const {
+  const auto it = robots_.find(robot);
+  return it != robots_.end() && same_grid(it->second, map);
+}
+
+bool GlobalFusion::same_grid(const Entry& fused, const HeldMap& map) const {
+  return fused.map->resolution() == map.resolution() && map.resolution() >= resolution_ * (1 - 1e-9);
+}
+
 std::optional<Eigen::Matrix4d> GlobalFusion::pose_of(const std::string& robot) const {
   const auto it = robots_.find(robot);
   if (it == robots_.end()) return std::nullopt;
@@ -622,11 +631,10 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
     r.ok = true;
     return r;
   }
-  const bool same_grid = it != robots_.end() &&
-                         (it->second.T_global_robot == T_global_robot || keep_pose_within > 0.0) &&
-                         it->second.map->resolution() == next.map->resolution() &&
-                         next.map->resolution() >= resolution_ * (1 - 1e-9);
-  const Difference diff = same_grid ? add_difference(it->second, next, keep_pose_within, r) : Difference::kTooFar;
+  const bool by_difference = it != robots_.end() &&
+                             (it->second.T_global_robot == T_global_robot || keep_pose_within > 0.0) &&
+                             same_grid(it->second, *next.map);
+  const Difference diff = by_difference ? add_difference(it->second, next, keep_pose_within, r) : Difference::kTooFar;
   if (diff != Difference::kTooFar) {
     r.ok = diff == Difference::kPlaced;
     r.incremental = r.ok;

@@ -104,6 +104,9 @@ class GlobalFusion {
 
   /// Whether `robot` is fused with exactly this map and pose (nothing to do for set()).
   bool holds(const std::string& robot, const HeldMap* map, const Eigen::Matrix4d& T) const;
+  /// Whether set() can replace `robot`'s fused map by `map`'s difference (at the fused pose):
+  /// the robot is fused with a map of `map`'s resolution, not finer than the global grid.
+  bool fuses_by_difference(const std::string& robot, const HeldMap& map) const;
   /// The pose `robot` is fused with (nullopt for a robot not fused).
   std::optional<Eigen::Matrix4d> pose_of(const std::string& robot) const;
   /// The map `robot` is fused with (null for a robot not fused).
@@ -152,6 +155,8 @@ class GlobalFusion {
     Eigen::Matrix4d T_global_robot;
     Eigen::AlignedBox3d extent;  ///< extent_of()
   };
+  /// fuses_by_difference() for the robot's entry.
+  bool same_grid(const Entry& fused, const HeldMap& map) const;
   /// `body_checked`: the entry's binary body was just scanned whole (as in set()): not again.
   /// `extent`: grown by every cube placed (null: not kept).
   void add_full(const Entry& entry, int sign, GlobalFuseResult& stats, bool body_checked = false,
