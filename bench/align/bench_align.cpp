@@ -15,6 +15,8 @@
 
 #include "mapmerge/align/align.hpp"
 #include "mapmerge/map/crop.hpp"
+#include "mapmerge/map/held_map.hpp"
+#include "mapmerge/map/map_codec.hpp"
 #include "mapmerge/map/map_io.hpp"
 
 namespace ma = mapmerge::align;
@@ -234,6 +236,39 @@ std::pair<double, double> cut_positions(const octomap::OcTree& tree, int axis, d
 
 }  // namespace
 
+double median(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  return v.empty() ? 0.0 : v[v.size() / 2];
+}
+
+/// The server's preparation of a received map (its `.bt` bytes, held undecoded): read off the
+/// bytes, against building the octree first and preparing that (the way before). Median ms.
+void prepare_timing(const octomap::OcTree& tree, const ma::AlignConfig& config, int runs) {
+  const auto bytes = mapmerge::encode_map(tree, mapmerge::Encoding::kOctomapBt);
+  const auto held = mapmerge::check_map(bytes.data(), bytes.size(), mapmerge::Encoding::kOctomapBt, {}).map;
+  if (!held) throw std::runtime_error("the map's bytes did not check");
+  std::printf("map: %zu nodes, %.3f m, %zu KiB as .bt; %d runs, median [ms]\n\n", held->num_nodes(),
+              held->resolution(), bytes.size() / 1024, runs);
+  std::printf("| preparation | off the bytes | tree build | + prepare the tree | = via the tree |\n|---|---|---|---|---|\n");
+  for (const bool features : {false, true}) {
+    std::vector<double> body, build, from_tree;
+    for (int i = 0; i < runs; ++i) {
+      auto t0 = Clock::now();
+      { const auto p = features ? ma::prepare_map(*held, config) : ma::prepare_for_refine(*held, config); }
+      body.push_back(ms_since(t0));
+      t0 = Clock::now();
+      const auto built = held->tree();
+      build.push_back(ms_since(t0));
+      t0 = Clock::now();
+      { const auto p = features ? ma::prepare_map(*built, config) : ma::prepare_for_refine(*built, config); }
+      from_tree.push_back(ms_since(t0));
+      held->release_tree();
+    }
+    std::printf("| %s | %.0f | %.0f | %.0f | %.0f |\n", features ? "prepare_map" : "prepare_for_refine", median(body),
+                median(build), median(from_tree), median(build) + median(from_tree));
+  }
+}
+
 int main(int argc, char** argv) {
   CLI::App app{"mapmerge_bench_align: alignment accuracy and speed on real maps"};
   std::string map_path = std::string(MAPMERGE_DATA_DIR) + "/fr_079.bt";
@@ -242,6 +277,7 @@ int main(int argc, char** argv) {
   int trials = 12, variant_trials = 2, coarsen = 1, axis = 0;
   unsigned seed = 1;
   bool quick = false, all_variants = false, paper_pair = false, floor_only = false;
+  int prepare_runs = 0;
   double max_translation = 10.0, max_tilt = 5.0;
   double z_min = -1e9, z_max = 1e9;
   app.add_option("--map", map_path, "real map (.bt/.ot)");
@@ -266,6 +302,8 @@ int main(int argc, char** argv) {
   app.add_flag("--all-variants", all_variants, "SAC/GCC x ICP/OICP/NDT x DIV/plain and the PCL/SHOT variants");
   app.add_flag("--floor-only", floor_only, "only refine from the true transform (the accuracy floor), no global search");
   app.add_flag("--paper-pair", paper_pair, "also run the paper's own pair (fr_079 only)");
+  app.add_option("--prepare-timing", prepare_runs,
+                 "only time preparing the map from its .bt bytes (as the server does) against via its octree, N runs");
   CLI11_PARSE(app, argc, argv);
   if (quick) {
     overlaps = {15, 30};
@@ -283,6 +321,11 @@ int main(int argc, char** argv) {
       name += " z " + fmt(z_min, 1) + ".." + fmt(z_max, 1) + " m";
     }
     if (coarsen > 1) name += " @" + fmt(tree->getResolution(), 2) + "m";
+    if (prepare_runs > 0) {
+      std::printf("%s\n", name.c_str());
+      prepare_timing(*tree, base, prepare_runs);
+      return 0;
+    }
     if (refine_to > 0.0) name += " on a " + fmt(refine_to, 3) + " m grid";
     const auto on_grid = [&](std::unique_ptr<octomap::OcTree> part) {
       return refine_to > 0.0 ? mapmerge::refine(*part, refine_to) : std::move(part);

@@ -43,11 +43,11 @@ DecodedMap decode_sample(const MapSample& s, const DecodeLimits& limits) {
   return out;
 }
 
-std::shared_ptr<const align::PreparedMap> prepare(const octomap::OcTree& tree, const align::AlignConfig& config,
+std::shared_ptr<const align::PreparedMap> prepare(const HeldMap& map, const align::AlignConfig& config,
                                                   bool features, std::string& error) {
   try {
-    return std::make_shared<const align::PreparedMap>(features ? align::prepare_map(tree, config)
-                                                               : align::prepare_for_refine(tree, config));
+    return std::make_shared<const align::PreparedMap>(features ? align::prepare_map(map, config)
+                                                               : align::prepare_for_refine(map, config));
   } catch (const std::exception& e) {
     error = e.what();
     return nullptr;

@@ -206,14 +206,8 @@ std::shared_ptr<const align::PreparedMap> Pipeline::prepared(const std::string& 
   if (rec->prepared && (!features || rec->prepared->has_features())) return rec->prepared;
   std::string error;
   const auto t0 = std::chrono::steady_clock::now();
-  std::shared_ptr<const align::PreparedMap> p;
-  {
-    const auto tree = rec->map->tree();  // built from the map's bytes
-    p = prepare(*tree, config_.align, features, error);
-  }
-  // The prepared map keeps no reference to the octree (~57 B a node) and nothing else here needs
-  // it: it exists while a map is prepared only.
-  rec->map->release_tree();
+  // Read off the map's bytes: its octree (~57 B a node) is not built.
+  const auto p = prepare(*rec->map, config_.align, features, error);
   spdlog::debug("robot {}: map prepared ({}) in {:.0f} ms", robot, features ? "features" : "refine only",
                 seconds_since(t0) * 1e3);
   if (!p) {

@@ -5,6 +5,8 @@
 
 #include "mapmerge/align/align.hpp"
 #include "mapmerge/map/crop.hpp"
+#include "mapmerge/map/held_map.hpp"
+#include "mapmerge/map/map_codec.hpp"
 #include "mapmerge/map/map_io.hpp"
 
 namespace ma = mapmerge::align;
@@ -188,6 +190,38 @@ TEST(AlignPipeline, RefineOnlyPreparationRefinesAlikeAndIsRefusedByTheGlobalSear
   const ma::AlignResult refused = ma::align(target, full_source, c);
   EXPECT_FALSE(refused.accepted);
   EXPECT_NE(refused.reason.find("without features"), std::string::npos) << refused.reason;
+}
+
+TEST(AlignPipeline, AHeldMapIsPreparedOffItsBytesAsItsTreeWouldBe) {
+  const Pair p = make_pair(fr079(), box(-10, -10, 0, 2, 10, 2), box(-2, -10, 0, 10, 10, 2),
+                           mapmerge::paper_transform(12, 6, 0.5, 5, 5, 60));
+  const auto held = [](const octomap::OcTree& tree) {
+    const auto bytes = mapmerge::encode_map(tree, mapmerge::Encoding::kOctomapBt);
+    return mapmerge::check_map(bytes.data(), bytes.size(), mapmerge::Encoding::kOctomapBt, {}).map;
+  };
+  const auto target = held(*p.target), source = held(*p.source);
+  ASSERT_TRUE(target && source);
+  const ma::AlignConfig c;
+  const ma::PreparedMap t = ma::prepare_map(*target, c), s = ma::prepare_map(*source, c);
+  const ma::PreparedMap s_refine = ma::prepare_for_refine(*source, c);
+  EXPECT_FALSE(target->has_tree());
+  EXPECT_FALSE(source->has_tree());
+  const ma::PreparedMap t_tree = ma::prepare_map(*target->tree(), c), s_tree = ma::prepare_map(*source->tree(), c);
+  EXPECT_EQ(t.num_points(), t_tree.num_points());
+  EXPECT_EQ(s.num_filtered(), s_tree.num_filtered());
+  EXPECT_EQ(s_refine.num_filtered(), s_tree.num_filtered());
+  EXPECT_EQ(t.num_keypoints(), t_tree.num_keypoints());
+  EXPECT_EQ(s.num_keypoints(), s_tree.num_keypoints());
+  const ma::AlignResult r = ma::align(t, s, c);
+  const ma::AlignResult r_tree = ma::align(t_tree, s_tree, c);
+  ASSERT_TRUE(r.accepted) << r.reason;
+  // (Equal up to the order of parallel sums.)
+  EXPECT_TRUE(r.T_target_source.isApprox(r_tree.T_target_source, 1e-9));
+  EXPECT_NEAR(r.fitness, r_tree.fitness, 1e-9);
+  EXPECT_LT(errors(r.T_target_source, p.T_true).rot_deg, 1.0);
+  const ma::AlignResult refined = ma::refine(t, s_refine, r.T_target_source, c);
+  ASSERT_TRUE(refined.accepted) << refined.reason;
+  EXPECT_TRUE(refined.T_target_source.isApprox(ma::refine(t_tree, s_tree, r.T_target_source, c).T_target_source, 1e-9));
 }
 
 TEST(AlignPipeline, EmptyMapIsAClearError) {

@@ -8,6 +8,8 @@
 
 #include "mapmerge/align/stages.hpp"
 #include "mapmerge/map/crop.hpp"
+#include "mapmerge/map/held_map.hpp"
+#include "mapmerge/map/map_codec.hpp"
 #include "mapmerge/map/map_io.hpp"
 
 namespace ma = mapmerge::align;
@@ -40,6 +42,52 @@ TEST(ToPoints, RealMapCountsEveryOccupiedVoxel) {
   ma::ToPointsConfig tight;
   tight.max_points = 1000;
   EXPECT_THROW(ma::to_points(*tree, tight), std::invalid_argument);
+}
+
+namespace {
+
+/// `tree` as a robot's update arrives: its `.bt` bytes, checked and held undecoded.
+std::shared_ptr<const mapmerge::HeldMap> held_bt(const octomap::OcTree& tree) {
+  const auto bytes = mapmerge::encode_map(tree, mapmerge::Encoding::kOctomapBt);
+  mapmerge::CheckedMap c = mapmerge::check_map(bytes.data(), bytes.size(), mapmerge::Encoding::kOctomapBt, {});
+  EXPECT_TRUE(c.ok()) << c.reason;
+  return c.map;
+}
+
+void expect_same_points(const std::vector<ma::OccupiedPoint>& a, const std::vector<ma::OccupiedPoint>& b) {
+  ASSERT_EQ(a.size(), b.size());
+  for (std::size_t i = 0; i < a.size(); ++i) {
+    ASSERT_EQ(a[i].position, b[i].position) << "point " << i;
+    ASSERT_EQ(a[i].occupancy, b[i].occupancy) << "point " << i;
+  }
+}
+
+}  // namespace
+
+TEST(ToPoints, ABinaryBodyGivesItsTreesPointsInTheTreesOrderWithoutBuildingIt) {
+  octomap::OcTree pruned(0.1);  // a pruned leaf, a lone voxel, free space, negative coordinates
+  for (int i = 0; i < 4; ++i)
+    for (int j = 0; j < 4; ++j)
+      for (int k = 0; k < 4; ++k) pruned.updateNode(-0.35 + 0.1 * i, 0.05 + 0.1 * j, -0.35 + 0.1 * k, true);
+  pruned.updateNode(1.05, -1.05, 1.05, false);
+  pruned.updateNode(2.05, -2.05, 0.05, true);
+  pruned.prune();
+  const auto geb = mapmerge::read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/geb079.bt");
+  for (const octomap::OcTree* tree : {&pruned, geb.get()}) {
+    const auto held = held_bt(*tree);
+    ASSERT_TRUE(held && held->binary_body());
+    const auto from_body = ma::to_points(*held, {});
+    EXPECT_FALSE(held->has_tree());
+    expect_same_points(from_body, ma::to_points(*held->tree(), {}));
+    // The positions are the original tree's; the occupancy is the body's (a clamped occupied leaf).
+    const auto original = ma::to_points(*tree, {});
+    ASSERT_EQ(from_body.size(), original.size());
+    for (std::size_t i = 0; i < original.size(); ++i) ASSERT_EQ(from_body[i].position, original[i].position);
+    ma::ToPointsConfig tight;
+    tight.max_points = from_body.size() - 1;
+    EXPECT_THROW(ma::to_points(*held, tight), std::invalid_argument);
+  }
+  EXPECT_EQ(held_bt(pruned)->occupied_leaves()->size(), 2U);  // the 4x4x4 block is one leaf
 }
 
 TEST(Fitness, HandComputedCase) {

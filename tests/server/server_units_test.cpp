@@ -199,7 +199,7 @@ TEST(Registry, RealFleetAWrongEdgeIsRejectedWithEvidenceAndARobotWithOnlyWrongEd
     rec.content_hash = i + 1;
     r.put_map(rec);
     std::string error;
-    prepared.push_back(prepare(*f.maps[i], config, true, error));
+    prepared.push_back(prepare(*rec.map, config, true, error));
     ASSERT_TRUE(prepared.back()) << error;
   }
   r.claim_reference("r3");

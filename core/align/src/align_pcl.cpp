@@ -582,15 +582,26 @@ Validation validate(const PreparedMap& target, const PreparedMap& source,
                cfg.validate, cfg.validate.n_th, tolerance_of(target.impl(), source.impl(), cfg));
 }
 
-AlignResult align_maps(const octomap::OcTree& target, const octomap::OcTree& source,
-                       const AlignConfig& config) {
+namespace {
+
+template <class Map>
+AlignResult prepare_and_align(const Map& target, const Map& source, const AlignConfig& config) {
   const auto t_all = Clock::now();
   PreparedMap t, s;
-  tbb::parallel_invoke([&] { t = prepare_map(target, config); },
-                       [&] { s = prepare_map(source, config); });
+  tbb::parallel_invoke([&] { t = prepare_map(target, config); }, [&] { s = prepare_map(source, config); });
   AlignResult r = align(t, s, config);
   r.timings.total_ms = ms_since(t_all);
   return r;
+}
+
+}  // namespace
+
+AlignResult align_maps(const octomap::OcTree& target, const octomap::OcTree& source, const AlignConfig& config) {
+  return prepare_and_align(target, source, config);
+}
+
+AlignResult align_maps(const HeldMap& target, const HeldMap& source, const AlignConfig& config) {
+  return prepare_and_align(target, source, config);
 }
 
 Fitness fitness_score(const std::vector<Eigen::Vector3f>& source_in_target,

@@ -19,6 +19,7 @@
 #include <pcl/segmentation/sac_segmentation.h>
 
 #include "mapmerge/align/stages.hpp"
+#include "mapmerge/map/held_map.hpp"
 #include "prepared_map_impl.hpp"
 
 namespace mapmerge::align {
@@ -102,13 +103,12 @@ Cloud::Ptr preprocess(const Cloud::Ptr& input, const PreprocessConfig& c, const 
 }
 
 /// Free-space votes along +n and -n: the surface faces the side the sensor saw as free.
-int free_votes(const octomap::OcTree& tree, const Point& p, float sign, double res) {
+int free_votes(const LeafSet& free, const Point& p, float sign, double res) {
   int votes = 0;
   for (int step = 1; step <= 2; ++step) {
     const auto d = static_cast<float>(sign * step * res);
-    const octomap::OcTreeNode* node =
-        tree.search(p.x + d * p.normal_x, p.y + d * p.normal_y, p.z + d * p.normal_z);
-    if (node != nullptr && !tree.isNodeOccupied(node)) ++votes;
+    const Eigen::Vector3f q = p.getVector3fMap() + d * p.getNormalVector3fMap();
+    if (free.contains(q.cast<double>())) ++votes;
   }
   return votes;
 }
@@ -196,8 +196,8 @@ void describe(PreparedMap::Impl& m, const SerialKdTree<Point>::Ptr& tree, const 
 
 }  // namespace
 
-void estimate_normals(Cloud& cloud, const SerialKdTree<Point>& search, double radius,
-                      const octomap::OcTree* orient_to, double res) {
+void estimate_normals(Cloud& cloud, const SerialKdTree<Point>& search, double radius, const LeafSet* orient_to,
+                      double res) {
   const bool orient = orient_to != nullptr;
   tbb::parallel_for(tbb::blocked_range<std::size_t>(0, cloud.size(), 512), [&](const auto& r) {
     pcl::Indices idx;
@@ -241,18 +241,13 @@ const PreparedMap::Impl& PreparedMap::impl() const {
   return *impl_;
 }
 
-/// Stages 1-2, and 4-5 when `features`.
-static PreparedMap prepare_stages(const octomap::OcTree& tree, const AlignConfig& config, bool features);
+namespace {
 
-PreparedMap prepare_map(const octomap::OcTree& tree, const AlignConfig& config) {
-  return prepare_stages(tree, config, true);
-}
-
-PreparedMap prepare_for_refine(const octomap::OcTree& tree, const AlignConfig& config) {
-  return prepare_stages(tree, config, false);
-}
-
-PreparedMap prepare_stages(const octomap::OcTree& tree, const AlignConfig& config, bool features) {
+/// Stages 1-2, and 4-5 when `features`, for a map of resolution `res` whose stage-1 points
+/// `read_points` and free leaves `read_free` read.
+template <class ReadPoints, class ReadFree>
+PreparedMap prepare_stages(double res, ReadPoints&& read_points, ReadFree&& read_free, const AlignConfig& config,
+                           bool features) {
   // PCL prints per-point warnings (degenerate ISS scatter, invalid SHOT frames) that the
   // pipeline already handles by dropping those points; results carry what matters.
   static std::once_flag quiet;
@@ -260,13 +255,13 @@ PreparedMap prepare_stages(const octomap::OcTree& tree, const AlignConfig& confi
   check_align_config(config);
   const auto t_start = Clock::now();
   auto m = std::make_shared<PreparedMap::Impl>();
-  m->resolution = tree.getResolution();
+  m->resolution = res;
   // The free space validation asks of this map, as sorted keys (~8 B a free leaf): the octree
   // itself (~57 B a node) is not kept.
-  m->free_space = std::make_shared<const LeafSet>(LeafSet::of(tree, LeafState::kFree));
+  m->free_space = std::make_shared<const LeafSet>(read_free());
 
   auto t0 = Clock::now();
-  const std::vector<OccupiedPoint> points = to_points(tree, config.points);
+  const std::vector<OccupiedPoint> points = read_points();
   if (points.empty()) throw std::invalid_argument("map has no occupied voxel");
   m->num_points = points.size();
   m->timings.to_points_ms = ms_since(t0);
@@ -296,7 +291,7 @@ PreparedMap prepare_stages(const octomap::OcTree& tree, const AlignConfig& confi
   const auto coarse_tree = std::make_shared<SerialKdTree<Point>>();
   coarse_tree->setInputCloud(m->coarse);
   estimate_normals(*m->coarse, *coarse_tree, config.describe.normal_radius * units.feature,
-                   config.preprocess.orient_normals_to_free ? &tree : nullptr, m->resolution);
+                   config.preprocess.orient_normals_to_free ? m->free_space.get() : nullptr, m->resolution);
   m->timings.preprocess_ms = ms_since(t0);
 
   t0 = Clock::now();
@@ -308,6 +303,34 @@ PreparedMap prepare_stages(const octomap::OcTree& tree, const AlignConfig& confi
   m->timings.describe_ms = ms_since(t0);
   m->timings.total_ms = ms_since(t_start);
   return PreparedMap(std::move(m));
+}
+
+PreparedMap prepare_tree(const octomap::OcTree& tree, const AlignConfig& config, bool features) {
+  return prepare_stages(
+      tree.getResolution(), [&] { return to_points(tree, config.points); },
+      [&] { return LeafSet::of(tree, LeafState::kFree); }, config, features);
+}
+
+PreparedMap prepare_held(const HeldMap& map, const AlignConfig& config, bool features) {
+  return prepare_stages(
+      map.resolution(), [&] { return to_points(map, config.points); },
+      [&] { return LeafSet::of(map, LeafState::kFree); }, config, features);
+}
+
+}  // namespace
+
+PreparedMap prepare_map(const octomap::OcTree& tree, const AlignConfig& config) {
+  return prepare_tree(tree, config, true);
+}
+
+PreparedMap prepare_for_refine(const octomap::OcTree& tree, const AlignConfig& config) {
+  return prepare_tree(tree, config, false);
+}
+
+PreparedMap prepare_map(const HeldMap& map, const AlignConfig& config) { return prepare_held(map, config, true); }
+
+PreparedMap prepare_for_refine(const HeldMap& map, const AlignConfig& config) {
+  return prepare_held(map, config, false);
 }
 
 std::vector<std::size_t> iss_keypoints(const std::vector<Eigen::Vector3f>& points,

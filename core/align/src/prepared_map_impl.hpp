@@ -13,10 +13,6 @@
 #include "mapmerge/map/leaf_set.hpp"
 #include "serial_kd_tree.hpp"
 
-namespace octomap {
-class OcTree;
-}
-
 namespace mapmerge::align {
 
 using Point = pcl::PointXYZINormal;  ///< position, intensity = occupancy probability, normal
@@ -45,11 +41,11 @@ struct PreparedMap::Impl {
 };
 
 /// Normals of `cloud` from its neighbours within `radius` [m] (found with `search`, a kd-tree
-/// over `cloud`), in parallel blocks. With `orient_to`, each faces that octree's free space
-/// (descriptors need a consistent sign; point-to-plane ICP does not). A point with fewer than 3
-/// neighbours gets +z; one whose neighbours are collinear keeps a NaN normal (no plane).
-void estimate_normals(Cloud& cloud, const SerialKdTree<Point>& search, double radius,
-                      const octomap::OcTree* orient_to, double res);
+/// over `cloud`), in parallel blocks. With `orient_to` (the map's free leaves), each faces the
+/// map's free space (descriptors need a consistent sign; point-to-plane ICP does not). A point
+/// with fewer than 3 neighbours gets +z; one whose neighbours are collinear keeps a NaN normal.
+void estimate_normals(Cloud& cloud, const SerialKdTree<Point>& search, double radius, const LeafSet* orient_to,
+                      double res);
 
 /// A hypothesis of stage 6 with its correspondence consensus.
 struct Hypothesis {

@@ -2,6 +2,7 @@
 #include <string>
 
 #include "mapmerge/align/stages.hpp"
+#include "mapmerge/map/held_map.hpp"
 
 namespace mapmerge::align {
 namespace {
@@ -9,6 +10,28 @@ namespace {
 /// Number of full-resolution voxels along one edge of a leaf of the given size.
 std::size_t voxels_per_edge(double leaf_size, double resolution) {
   return static_cast<std::size_t>(leaf_size / resolution + 0.5);
+}
+
+/// Appends the full-resolution voxel centres of an occupied leaf of `size` at `centre` (a pruned
+/// leaf is expanded into its voxels), refusing more than config.max_points in all.
+void add_block(std::vector<OccupiedPoint>& out, const Eigen::Vector3f& centre, double size, float occupancy,
+               double res, const ToPointsConfig& config) {
+  const std::size_t n = voxels_per_edge(size, res);
+  if (out.size() + n * n * n > config.max_points) {
+    throw std::invalid_argument("map has more than " + std::to_string(config.max_points) +
+                                " occupied voxels (points.max_points)");
+  }
+  if (n <= 1) {
+    out.push_back({centre, occupancy});
+    return;
+  }
+  const auto half = static_cast<float>(size / 2.0);
+  const Eigen::Vector3f corner = centre.array() - half;
+  const auto r = static_cast<float>(res);
+  for (std::size_t i = 0; i < n; ++i)
+    for (std::size_t j = 0; j < n; ++j)
+      for (std::size_t k = 0; k < n; ++k)
+        out.push_back({corner + Eigen::Vector3f((i + 0.5F) * r, (j + 0.5F) * r, (k + 0.5F) * r), occupancy});
 }
 
 /// Depth-first walk that skips subtrees whose inner node is free: an inner node holds the
@@ -43,28 +66,7 @@ class Collector {
     if (occupancy < config_.min_occupancy) return;
     const double size = tree_.getNodeSize(depth);
     const octomap::point3d c = tree_.keyToCoord(key, depth);
-    add_block(Eigen::Vector3f(c.x(), c.y(), c.z()), size, occupancy);
-  }
-
-  void add_block(const Eigen::Vector3f& centre, double size, float occupancy) {
-    const std::size_t n = voxels_per_edge(size, res_);
-    if (out_.size() + n * n * n > config_.max_points) {
-      throw std::invalid_argument("map has more than " + std::to_string(config_.max_points) +
-                                  " occupied voxels (points.max_points)");
-    }
-    if (n <= 1) {
-      out_.push_back({centre, occupancy});
-      return;
-    }
-    // Pruned leaf: expand into its full-resolution voxels.
-    const auto half = static_cast<float>(size / 2.0);
-    const Eigen::Vector3f corner = centre.array() - half;
-    const auto r = static_cast<float>(res_);
-    for (std::size_t i = 0; i < n; ++i)
-      for (std::size_t j = 0; j < n; ++j)
-        for (std::size_t k = 0; k < n; ++k)
-          out_.push_back({corner + Eigen::Vector3f((i + 0.5F) * r, (j + 0.5F) * r, (k + 0.5F) * r),
-                          occupancy});
+    add_block(out_, Eigen::Vector3f(c.x(), c.y(), c.z()), size, occupancy, res_, config_);
   }
 
   const octomap::OcTree& tree_;
@@ -80,6 +82,19 @@ std::vector<OccupiedPoint> to_points(const octomap::OcTree& tree, const ToPoints
   if (tree.getRoot() == nullptr) return points;
   const auto centre = static_cast<octomap::key_type>(1U << (tree.getTreeDepth() - 1));
   Collector(tree, config, points).visit(tree.getRoot(), octomap::OcTreeKey(centre, centre, centre), 0);
+  return points;
+}
+
+std::vector<OccupiedPoint> to_points(const HeldMap& map, const ToPointsConfig& config) {
+  if (!map.binary_body()) return to_points(*map.tree(), config);
+  std::vector<OccupiedPoint> points;
+  // A binary body's occupied leaves all stand for the tree's upper clamping bound.
+  const auto occupancy = static_cast<float>(octomap::probability(map.occupied_log_odds()));
+  if (occupancy < config.min_occupancy) return points;
+  const double res = map.resolution();
+  map.for_each_leaf([&](const BodyLeaf& leaf) {
+    if (leaf.occupied) add_block(points, leaf.centre, leaf.size, occupancy, res, config);
+  });
   return points;
 }
 

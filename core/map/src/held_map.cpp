@@ -1,7 +1,10 @@
 #include "mapmerge/map/held_map.hpp"
 
+#include <cmath>
+
 #include "codec_detail.hpp"
 #include "mapmerge/map/map_io.hpp"
+#include "tree_scan.hpp"
 
 namespace mapmerge {
 namespace {
@@ -64,6 +67,36 @@ std::shared_ptr<const LeafSet> HeldMap::occupied_leaves() const {
   std::call_once(occupied_once_,
                  [this] { occupied_ = std::make_shared<const LeafSet>(LeafSet::of(*this, LeafState::kOccupied)); });
   return occupied_;
+}
+
+bool HeldMap::for_each_leaf(const std::function<void(const BodyLeaf&)>& leaf) const {
+  if (!body_) return false;
+  // OcTree::keyToCoord(key, depth) and getNodeSize(depth), in the same arithmetic (so the same
+  // floats): (floor((key - centre) / 2^(16 - depth)) + 0.5) * size, or (key - centre + 0.5) * res
+  // at depth 16; a leaf's lowest-corner key makes the floor exact.
+  constexpr int kCentre = 1 << (detail::kTreeDepth - 1);
+  BodyLeaf b;
+  detail::for_each_binary_leaf(*body_, [&](unsigned code, unsigned depth, std::uint32_t x, std::uint32_t y,
+                                           std::uint32_t z) {
+    b.occupied = code == 2;
+    b.depth = depth;
+    const std::uint32_t key[3] = {x, y, z};
+    if (depth == detail::kTreeDepth) {
+      b.size = resolution_;
+      for (int a = 0; a < 3; ++a) {
+        b.centre[a] = static_cast<float>((static_cast<double>(static_cast<int>(key[a]) - kCentre) + 0.5) * resolution_);
+      }
+    } else {
+      const double cells = static_cast<double>(1U << (detail::kTreeDepth - depth));
+      b.size = resolution_ * cells;
+      for (int a = 0; a < 3; ++a) {
+        b.centre[a] = static_cast<float>(
+            (std::floor((static_cast<double>(key[a]) - static_cast<double>(kCentre)) / cells) + 0.5) * b.size);
+      }
+    }
+    leaf(b);
+  });
+  return true;
 }
 
 bool HeldMap::has_tree() const { return built_flag_.load(std::memory_order_acquire); }

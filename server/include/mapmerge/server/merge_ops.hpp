@@ -30,10 +30,10 @@ struct DecodedMap {
 /// match its topic is rejected too.
 DecodedMap decode_sample(const MapSample& sample, const DecodeLimits& limits);
 
-/// Alignment features of a map (the tree is not referenced afterwards); null with `error` set
+/// Alignment features of a map, read off its bytes (its octree is not built); null with `error` set
 /// for a map that cannot be aligned.
 /// Without `features` only stages 1-2 (enough for align_local, not for align_global).
-std::shared_ptr<const align::PreparedMap> prepare(const octomap::OcTree& tree, const align::AlignConfig& config,
+std::shared_ptr<const align::PreparedMap> prepare(const HeldMap& map, const align::AlignConfig& config,
                                                   bool features, std::string& error);
 
 /// Global search for T_target_source (no initial guess).

@@ -17,6 +17,10 @@
 
 #include "mapmerge/align/config.hpp"
 
+namespace mapmerge {
+class HeldMap;
+}
+
 namespace mapmerge::align {
 
 /// Wall time of each stage [ms]. Preparation stages add up both maps' times.
@@ -86,6 +90,11 @@ PreparedMap prepare_map(const octomap::OcTree& tree, const AlignConfig& config);
 /// fraction of prepare_map()'s time and memory; align() refuses such a map (not accepted).
 PreparedMap prepare_for_refine(const octomap::OcTree& tree, const AlignConfig& config);
 
+/// prepare_map() and prepare_for_refine() of a held map, read off its binary body: its octree is
+/// not built (~57 B a node, and the time to build it), the result is the same as from tree().
+PreparedMap prepare_map(const HeldMap& map, const AlignConfig& config);
+PreparedMap prepare_for_refine(const HeldMap& map, const AlignConfig& config);
+
 /// Global search: stages 3, 6, 7, 8. Never throws for "no alignment".
 AlignResult align(const PreparedMap& target, const PreparedMap& source, const AlignConfig& config);
 
@@ -100,6 +109,8 @@ Validation validate(const PreparedMap& target, const PreparedMap& source,
 /// prepare_map for both (in parallel) then align.
 AlignResult align_maps(const octomap::OcTree& target, const octomap::OcTree& source,
                        const AlignConfig& config);
+/// The same, both prepared off their bytes (no octree is built).
+AlignResult align_maps(const HeldMap& target, const HeldMap& source, const AlignConfig& config);
 
 /// JSON object of the stage timings, e.g. {"to_points_ms": 3.1, ...}.
 std::string timings_json(const StageTimings& t);

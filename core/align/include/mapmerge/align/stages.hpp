@@ -10,6 +10,10 @@
 
 #include "mapmerge/align/config.hpp"
 
+namespace mapmerge {
+class HeldMap;
+}
+
 namespace mapmerge::align {
 
 /// One occupied voxel centre with its occupancy probability.
@@ -21,6 +25,9 @@ struct OccupiedPoint {
 /// Stage 1: centres of all occupied voxels at full resolution (pruned leaves expanded).
 /// Throws std::invalid_argument when the expansion would exceed config.max_points.
 std::vector<OccupiedPoint> to_points(const octomap::OcTree& tree, const ToPointsConfig& config);
+/// Stage 1 off a map's binary body (its octree is not built): the same points, in the same
+/// order, as to_points(*map.tree()); a map without a body is read off its tree.
+std::vector<OccupiedPoint> to_points(const HeldMap& map, const ToPointsConfig& config);
 
 /// One submodel: a box of the source map and the indices of the points inside.
 struct Block {

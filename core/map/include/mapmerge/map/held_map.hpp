@@ -10,15 +10,25 @@
 #include <atomic>
 #include <cstddef>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <vector>
 
+#include <Eigen/Core>
 #include <octomap/OcTree.h>
 
 #include "mapmerge/map/leaf_set.hpp"
 
 namespace mapmerge {
+
+/// One leaf of a map's binary body, placed as the octree read from that body places it.
+struct BodyLeaf {
+  bool occupied = false;    ///< else free
+  unsigned depth = 0;       ///< 1..16 (16: one voxel)
+  Eigen::Vector3f centre;   ///< OcTree::keyToCoord of the leaf at its depth [m]
+  double size = 0.0;        ///< OcTree::getNodeSize(depth) [m]
+};
 
 class HeldMap;
 
@@ -58,6 +68,10 @@ class HeldMap {
   /// The map's occupied leaves, read off the body on the first call (the tree is not built) and
   /// kept: what an overlap estimate asks of a map, at ~8 B per occupied leaf.
   std::shared_ptr<const LeafSet> occupied_leaves() const;
+  /// Calls `leaf` for every leaf of the binary body (its tree is not built), depth first in child
+  /// order: the order, centres and sizes of a walk of tree(). False (nothing visited) for a map
+  /// without a binary body.
+  bool for_each_leaf(const std::function<void(const BodyLeaf&)>& leaf) const;
 
  private:
   friend std::shared_ptr<const HeldMap> detail::held_checked_body(double, std::shared_ptr<const std::vector<std::uint8_t>>,
