@@ -17,6 +17,7 @@
 #include "commands.hpp"
 #include "mapmerge/align/align.hpp"
 #include "mapmerge/map/fusion.hpp"
+#include "mapmerge/map/held_map.hpp"
 #include "mapmerge/map/map_io.hpp"
 
 namespace mapmerge::app {
@@ -52,9 +53,9 @@ class QuietStderr {
 /// The process ends after the command: trees of up to millions of nodes are left to the OS
 /// instead of being freed node by node (tens of milliseconds). They stay reachable from a
 /// static pointer, so leak checkers do not report them.
-void keep_until_exit(std::shared_ptr<octomap::OcTree> tree) {
-  static auto* kept = new std::vector<std::shared_ptr<octomap::OcTree>>();
-  kept->push_back(std::move(tree));
+void keep_until_exit(std::shared_ptr<const void> map) {
+  static auto* kept = new std::vector<std::shared_ptr<const void>>();
+  kept->push_back(std::move(map));
 }
 
 struct MergeOptions {
@@ -99,11 +100,13 @@ int run_merge(const MergeOptions& o) {
     std::cerr << "mapmerge merge: " << e.what() << "\n";
     return 2;
   }
-  std::shared_ptr<octomap::OcTree> target, source;
+  // Both files are read and checked at once, kept as their bytes: the alignment reads those, and
+  // octrees are built only to write the fused map.
+  std::shared_ptr<const HeldMap> target, source;
   try {
-    QuietStderr quiet;  // both files are read at once
-    auto pending = std::async(std::launch::async, [&] { return read_octree_file(o.source); });
-    target = read_octree_file(o.target);
+    QuietStderr quiet;  // (OctoMap reports a `.ot` file it reads)
+    auto pending = std::async(std::launch::async, [&] { return read_map_file(o.source); });
+    target = read_map_file(o.target);
     source = pending.get();
   } catch (const MapError& e) {
     std::cerr << "mapmerge merge: " << e.what() << "\n";
@@ -117,14 +120,26 @@ int run_merge(const MergeOptions& o) {
     return 1;
   }
   if (result.accepted && !o.output.empty()) {
-    const FuseResult fused = fuse_into(*target, *source, result.T_target_source, FuseConfig{});
+    std::shared_ptr<octomap::OcTree> merged;  // the target's tree, fused into and written
+    std::shared_ptr<const octomap::OcTree> moved;
+    try {
+      QuietStderr quiet;
+      auto pending = std::async(std::launch::async, [&] { return source->tree(); });
+      merged = read_octree_file(o.target);
+      moved = pending.get();
+    } catch (const MapError& e) {
+      std::cerr << "mapmerge merge: " << e.what() << "\n";
+      return 1;
+    }
+    keep_until_exit(merged);
+    const FuseResult fused = fuse_into(*merged, *moved, result.T_target_source, FuseConfig{});
     if (!fused.ok) {
       std::cerr << "mapmerge merge: fusion failed: " << fused.reason << "\n";
       return 1;
     }
     try {
       QuietStderr quiet;
-      write_octree_file(*target, o.output);
+      write_octree_file(*merged, o.output);
     } catch (const MapError& e) {
       std::cerr << "mapmerge merge: " << e.what() << "\n";
       return 1;

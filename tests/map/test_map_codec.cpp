@@ -3,6 +3,7 @@
 
 #include <cmath>
 #include <cstring>
+#include <fstream>
 #include <limits>
 #include <random>
 #include <sstream>
@@ -13,7 +14,9 @@
 #include "map_test_util.hpp"
 #include "mapmerge/map/bounds.hpp"
 #include "mapmerge/map/crop.hpp"
+#include "mapmerge/map/held_map.hpp"
 #include "mapmerge/map/map_codec.hpp"
+#include "mapmerge/map/map_io.hpp"
 
 namespace mapmerge {
 namespace {
@@ -457,6 +460,34 @@ TEST(Codec, ReadOctreeFileValidatesToo) {
   EXPECT_THROW(read_octree_file(test::data_path("missing.bt")), MapError);
   const auto tree = read_octree_file(test::data_path("geb079.bt"));
   EXPECT_DOUBLE_EQ(tree->getResolution(), 0.08);
+}
+
+TEST(Codec, ReadMapFileChecksAsReadOctreeFileAndKeepsABtFilesBody) {
+  EXPECT_THROW(read_map_file(test::data_path("README.md")), MapError);
+  EXPECT_THROW(read_map_file(test::data_path("missing.bt")), MapError);
+  const std::string dir = ::testing::TempDir();
+  {
+    auto bytes = file_bytes("geb079.bt");
+    bytes.resize(bytes.size() - 7);  // a truncated body
+    std::ofstream(dir + "cut.bt", std::ios::binary).write(reinterpret_cast<const char*>(bytes.data()), bytes.size());
+  }
+  EXPECT_THROW(read_octree_file(dir + "cut.bt"), MapError);
+  EXPECT_THROW(read_map_file(dir + "cut.bt"), MapError);
+  const auto held = read_map_file(test::data_path("geb079.bt"));
+  ASSERT_TRUE(held->binary_body());
+  EXPECT_FALSE(held->has_tree());
+  EXPECT_DOUBLE_EQ(held->resolution(), 0.08);
+  const auto tree = read_octree_file(test::data_path("geb079.bt"));
+  EXPECT_EQ(held->num_nodes(), tree->size());
+  EXPECT_EQ(held->tree()->size(), tree->size());
+  write_octree_file(octomap::OcTree(0.05), dir + "empty.bt");
+  const auto empty = read_map_file(dir + "empty.bt");  // empty but well-formed: a map without nodes
+  EXPECT_EQ(empty->num_nodes(), 0U);
+  EXPECT_DOUBLE_EQ(empty->resolution(), 0.05);
+  write_octree_file(*tree, dir + "geb079.ot");
+  const auto full = read_map_file(dir + "geb079.ot");  // a full body is decoded at once
+  EXPECT_FALSE(full->binary_body());
+  EXPECT_EQ(full->num_nodes(), tree->size());
 }
 
 /// OctoMap's own extent (one leaf iteration per call) against leaf_bounds().

@@ -3,6 +3,7 @@
 #include <fstream>
 #include <vector>
 
+#include "mapmerge/map/held_map.hpp"
 #include "mapmerge/map/map_codec.hpp"
 
 namespace mapmerge {
@@ -29,20 +30,34 @@ std::vector<std::uint8_t> read_bytes(const std::string& path, std::size_t max_by
   return bytes;
 }
 
+Encoding file_encoding(const std::string& path) {
+  if (ends_with(path, ".ot")) return Encoding::kOctomapOt;
+  if (!ends_with(path, ".bt")) throw MapError("'" + path + "': unsupported map format (expected .bt or .ot)");
+  return Encoding::kOctomapBt;
+}
+
 }  // namespace
 
 std::unique_ptr<octomap::OcTree> read_octree_file(const std::string& path) {
-  Encoding encoding = Encoding::kOctomapBt;
-  if (ends_with(path, ".ot")) {
-    encoding = Encoding::kOctomapOt;
-  } else if (!ends_with(path, ".bt")) {
-    throw MapError("'" + path + "': unsupported map format (expected .bt or .ot)");
-  }
+  const Encoding encoding = file_encoding(path);
   // Files go through the same validation as wire payloads: OctoMap never parses unchecked bytes.
   const DecodeLimits limits;
   DecodeResult result = decode_map(read_bytes(path, limits.max_bytes), encoding, limits);
   if (!result.ok()) throw MapError("'" + path + "': " + result.reason);
   return std::move(result.tree);
+}
+
+std::shared_ptr<const HeldMap> read_map_file(const std::string& path) {
+  const Encoding encoding = file_encoding(path);
+  const DecodeLimits limits;
+  const std::vector<std::uint8_t> bytes = read_bytes(path, limits.max_bytes);
+  CheckedMap checked = check_map(bytes.data(), bytes.size(), encoding, limits);
+  if (!checked.ok()) throw MapError("'" + path + "': " + checked.reason);
+  if (checked.map) return std::move(checked.map);
+  // An empty map: the tree decode_map() gives (its resolution, no nodes).
+  DecodeResult empty = decode_map(bytes, encoding, limits);
+  if (!empty.ok()) throw MapError("'" + path + "': " + empty.reason);
+  return std::make_shared<const HeldMap>(std::shared_ptr<const octomap::OcTree>(std::move(empty.tree)));
 }
 
 void write_octree_file(const octomap::OcTree& tree, const std::string& path) {

@@ -20,6 +20,12 @@ class MapError : public std::runtime_error {
 /// (validated by decode_map() with default DecodeLimits before OctoMap parses anything).
 std::unique_ptr<octomap::OcTree> read_octree_file(const std::string& path);
 
+class HeldMap;
+
+/// Loads a `.bt` or `.ot` file as read_octree_file() does, with the same checks and errors, but
+/// keeps a `.bt` file's body undecoded (mapmerge::HeldMap: its octree is built on first use).
+std::shared_ptr<const HeldMap> read_map_file(const std::string& path);
+
 /// Writes `tree` as a `.bt` file (`.ot`, with log-odds, when the path ends so). Throws MapError when the file cannot be written.
 void write_octree_file(const octomap::OcTree& tree, const std::string& path);
 
