@@ -4,8 +4,8 @@
 ///
 /// A robot's update is most often only fused by difference (GlobalFusion reads that off the
 /// binary bodies of the old and the new map) and published: building its OcTree (~100 ms and
-/// ~57 B of RAM per node for a Freiburg-size map, ~60x the payload) can wait for the alignment
-/// that needs one, off the update's path.
+/// ~57 B of RAM per node for a Freiburg-size map, ~60x the payload) is not needed for that, nor
+/// to prepare the map for alignment (for_each_leaf() reads its leaves off the body).
 
 #include <atomic>
 #include <cstddef>
