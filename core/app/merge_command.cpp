@@ -17,6 +17,7 @@
 #include "commands.hpp"
 #include "mapmerge/align/align.hpp"
 #include "mapmerge/map/fusion.hpp"
+#include "mapmerge/map/global_fusion.hpp"
 #include "mapmerge/map/held_map.hpp"
 #include "mapmerge/map/map_io.hpp"
 
@@ -53,6 +54,10 @@ class QuietStderr {
 /// The process ends after the command: trees of up to millions of nodes are left to the OS
 /// instead of being freed node by node (tens of milliseconds). They stay reachable from a
 /// static pointer, so leak checkers do not report them.
+bool ends_with(const std::string& s, const std::string& suffix) {
+  return s.size() >= suffix.size() && s.compare(s.size() - suffix.size(), suffix.size(), suffix) == 0;
+}
+
 void keep_until_exit(std::shared_ptr<const void> map) {
   static auto* kept = new std::vector<std::shared_ptr<const void>>();
   kept->push_back(std::move(map));
@@ -100,8 +105,8 @@ int run_merge(const MergeOptions& o) {
     std::cerr << "mapmerge merge: " << e.what() << "\n";
     return 2;
   }
-  // Both files are read and checked at once, kept as their bytes: the alignment reads those, and
-  // octrees are built only to write the fused map.
+  // Both files are read and checked at once, kept as their bytes: the alignment and the fusion
+  // read those.
   std::shared_ptr<const HeldMap> target, source;
   try {
     QuietStderr quiet;  // (OctoMap reports a `.ot` file it reads)
@@ -120,26 +125,25 @@ int run_merge(const MergeOptions& o) {
     return 1;
   }
   if (result.accepted && !o.output.empty()) {
-    std::shared_ptr<octomap::OcTree> merged;  // the target's tree, fused into and written
-    std::shared_ptr<const octomap::OcTree> moved;
-    try {
-      QuietStderr quiet;
-      auto pending = std::async(std::launch::async, [&] { return source->tree(); });
-      merged = read_octree_file(o.target);
-      moved = pending.get();
-    } catch (const MapError& e) {
-      std::cerr << "mapmerge merge: " << e.what() << "\n";
-      return 1;
-    }
-    keep_until_exit(merged);
-    const FuseResult fused = fuse_into(*merged, *moved, result.T_target_source, FuseConfig{});
-    if (!fused.ok) {
-      std::cerr << "mapmerge merge: fusion failed: " << fused.reason << "\n";
+    // Fused as the server fuses (GlobalFusion, the sum of both maps' log-odds clamped once, on
+    // the target's grid), off the maps' bytes: no octree is built to write a `.bt` file.
+    auto fused = std::make_shared<GlobalFusion>(target->resolution(), FuseConfig{});
+    keep_until_exit(fused);
+    GlobalFuseResult r = fused->set("target", target, Eigen::Matrix4d::Identity());
+    if (r.ok) r = fused->set("source", source, result.T_target_source);
+    if (!r.ok) {
+      std::cerr << "mapmerge merge: fusion failed: " << r.reason << "\n";
       return 1;
     }
     try {
       QuietStderr quiet;
-      write_octree_file(*merged, o.output);
+      if (ends_with(o.output, ".ot")) {
+        const std::shared_ptr<const octomap::OcTree> tree = fused->tree();
+        keep_until_exit(tree);
+        write_octree_file(*tree, o.output);
+      } else {
+        write_bt_file(fused->encode().bt, o.output);
+      }
     } catch (const MapError& e) {
       std::cerr << "mapmerge merge: " << e.what() << "\n";
       return 1;

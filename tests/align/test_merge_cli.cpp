@@ -9,6 +9,7 @@
 #include <nlohmann/json.hpp>
 
 #include "mapmerge/map/crop.hpp"
+#include "mapmerge/map/fusion.hpp"
 #include "mapmerge/map/map_io.hpp"
 
 namespace fs = std::filesystem;
@@ -88,6 +89,44 @@ TEST_F(MergeCli, AcceptedPairPrintsJsonAndWritesTheFusedMap) {
   using Box = Eigen::AlignedBox3d;
   const Box all(Eigen::Vector3d::Constant(-1e6), Eigen::Vector3d::Constant(1e6));
   EXPECT_GT(mapmerge::count_occupied(*merged, all), mapmerge::count_occupied(*scene, all) * 3 / 2);
+}
+
+/// Leaves of `a` whose occupancy `b` does not share at their centre (unknown in b counts).
+std::size_t leaves_not_in(const octomap::OcTree& a, const octomap::OcTree& b) {
+  std::size_t differ = 0;
+  for (auto it = a.begin_leafs(), end = a.end_leafs(); it != end; ++it) {
+    const octomap::OcTreeNode* n = b.search(it.getKey());
+    if (n == nullptr || b.isNodeOccupied(n) != a.isNodeOccupied(*it)) ++differ;
+  }
+  return differ;
+}
+
+TEST_F(MergeCli, TheWrittenMapIsBothMapsFusedAtThePrintedTransform) {
+  const CliRun r = run_cli("merge " + path("scene.bt") + " " + path("model.ot") + " --json -o " + path("fused.bt"));
+  ASSERT_EQ(r.code, 0) << r.out;
+  const auto j = nlohmann::json::parse(r.stdout_only);
+  Eigen::Matrix4d T;
+  for (int i = 0; i < 16; ++i) T(i / 4, i % 4) = j["T_target_source"][i].get<double>();
+  // The reference: the model's evidence added to the scene's tree (stage 9, fuse_into).
+  const auto reference = mapmerge::read_octree_file(path("scene.bt"));
+  ASSERT_TRUE(mapmerge::fuse_into(*reference, *mapmerge::read_octree_file(path("model.ot")), T,
+                                  mapmerge::FuseConfig{}).ok);
+  const auto written = mapmerge::read_octree_file(path("fused.bt"));
+  EXPECT_DOUBLE_EQ(written->getResolution(), reference->getResolution());
+  EXPECT_GT(reference->getNumLeafNodes(), 100'000U);
+  EXPECT_EQ(leaves_not_in(*reference, *written), 0U);
+  EXPECT_EQ(leaves_not_in(*written, *reference), 0U);
+  // `.ot`: the same map with its clamped log-odds.
+  const CliRun ot = run_cli("merge " + path("scene.bt") + " " + path("model.ot") + " -o " + path("fused.ot"));
+  ASSERT_EQ(ot.code, 0) << ot.out;
+  const auto full = mapmerge::read_octree_file(path("fused.ot"));
+  EXPECT_EQ(leaves_not_in(*reference, *full), 0U);
+  EXPECT_EQ(leaves_not_in(*full, *reference), 0U);
+  std::size_t between = 0;  // log-odds a fusion of evidence leaves strictly inside the clamps
+  for (auto it = full->begin_leafs(), end = full->end_leafs(); it != end; ++it) {
+    between += it->getLogOdds() < full->getClampingThresMaxLog() && it->getLogOdds() > full->getClampingThresMinLog();
+  }
+  EXPECT_GT(between, 0U);
 }
 
 TEST_F(MergeCli, NoOverlapExitsThreeAndWritesNothing) {

@@ -68,4 +68,11 @@ void write_octree_file(const octomap::OcTree& tree, const std::string& path) {
   }
 }
 
+void write_bt_file(const std::vector<std::uint8_t>& bt, const std::string& path) {
+  std::ofstream out(path, std::ios::binary);
+  out.write(reinterpret_cast<const char*>(bt.data()), static_cast<std::streamsize>(bt.size()));
+  out.close();
+  if (!out) throw MapError("cannot write map file '" + path + "'");
+}
+
 }  // namespace mapmerge

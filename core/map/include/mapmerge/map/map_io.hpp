@@ -1,9 +1,11 @@
 #pragma once
 /// Reading and writing OctoMap files.
 
+#include <cstdint>
 #include <memory>
 #include <stdexcept>
 #include <string>
+#include <vector>
 
 #include <octomap/OcTree.h>
 
@@ -28,5 +30,9 @@ std::shared_ptr<const HeldMap> read_map_file(const std::string& path);
 
 /// Writes `tree` as a `.bt` file (`.ot`, with log-odds, when the path ends so). Throws MapError when the file cannot be written.
 void write_octree_file(const octomap::OcTree& tree, const std::string& path);
+
+/// Writes a `.bt` payload (header + body, as GlobalFusion::encode() gives it) to `path` as it is.
+/// Throws MapError when the file cannot be written.
+void write_bt_file(const std::vector<std::uint8_t>& bt, const std::string& path);
 
 }  // namespace mapmerge
