@@ -54,10 +54,6 @@ class QuietStderr {
 /// The process ends after the command: trees of up to millions of nodes are left to the OS
 /// instead of being freed node by node (tens of milliseconds). They stay reachable from a
 /// static pointer, so leak checkers do not report them.
-bool ends_with(const std::string& s, const std::string& suffix) {
-  return s.size() >= suffix.size() && s.compare(s.size() - suffix.size(), suffix.size(), suffix) == 0;
-}
-
 void keep_until_exit(std::shared_ptr<const void> map) {
   static auto* kept = new std::vector<std::shared_ptr<const void>>();
   kept->push_back(std::move(map));
@@ -137,7 +133,7 @@ int run_merge(const MergeOptions& o) {
     }
     try {
       QuietStderr quiet;
-      if (ends_with(o.output, ".ot")) {
+      if (is_ot_path(o.output)) {
         const std::shared_ptr<const octomap::OcTree> tree = fused->tree();
         keep_until_exit(tree);
         write_octree_file(*tree, o.output);

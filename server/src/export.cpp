@@ -1,7 +1,6 @@
 #include "mapmerge/server/export.hpp"
 
 #include <algorithm>
-#include <fstream>
 
 #include "mapmerge/map/global_fusion.hpp"
 #include "mapmerge/map/map_io.hpp"
@@ -17,12 +16,6 @@ std::vector<std::uint8_t> as_bt(const GlobalMapOut& g, const DecodeLimits& limit
   DecodeResult d = decode_map(g.data, g.encoding, limits);
   if (!d.ok()) throw StoreError("stored global map cannot be decoded: " + d.reason);
   return encode_map(*d.tree, Encoding::kOctomapBt);
-}
-
-void write_file(const std::string& path, const std::vector<std::uint8_t>& bytes) {
-  std::ofstream out(path, std::ios::binary);
-  out.write(reinterpret_cast<const char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
-  if (!out) throw MapError("cannot write '" + path + "'");
 }
 
 }  // namespace
@@ -44,7 +37,7 @@ ExportedGlobal export_global(const ServerConfig& config, const std::string& pref
     maps.push_back(NamedMap{c.robot_id, trees.back().get(), p->T_global_robot});
   }
   const Provenance provenance = provenance_of(maps, g.resolution);
-  write_file(prefix + ".bt", as_bt(g, config.limits));
+  write_bt_file(as_bt(g, config.limits), prefix + ".bt");
   write_provenance(provenance, prefix + ".prov");
   return ExportedGlobal{g.version, provenance.robots.size(), provenance.owner.size()};
 }

@@ -60,9 +60,11 @@ std::shared_ptr<const HeldMap> read_map_file(const std::string& path) {
   return std::make_shared<const HeldMap>(std::shared_ptr<const octomap::OcTree>(std::move(empty.tree)));
 }
 
+bool is_ot_path(const std::string& path) { return ends_with(path, ".ot"); }
+
 void write_octree_file(const octomap::OcTree& tree, const std::string& path) {
   std::ofstream out(path, std::ios::binary);
-  const bool full = ends_with(path, ".ot");
+  const bool full = is_ot_path(path);
   if (!out || !(full ? tree.write(out) : tree.writeBinaryConst(out))) {
     throw MapError("cannot write map file '" + path + "'");
   }

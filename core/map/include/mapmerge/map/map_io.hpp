@@ -28,6 +28,9 @@ class HeldMap;
 /// keeps a `.bt` file's body undecoded (mapmerge::HeldMap: its octree is built on first use).
 std::shared_ptr<const HeldMap> read_map_file(const std::string& path);
 
+/// Whether write_octree_file() writes `path` as a full `.ot` file (with log-odds), not a `.bt` one.
+bool is_ot_path(const std::string& path);
+
 /// Writes `tree` as a `.bt` file (`.ot`, with log-odds, when the path ends so). Throws MapError when the file cannot be written.
 void write_octree_file(const octomap::OcTree& tree, const std::string& path);
 
