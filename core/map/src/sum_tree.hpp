@@ -28,7 +28,7 @@ class SumNode : public octomap::OcTreeDataNode<std::int64_t> {
  public:
   SumNode() : octomap::OcTreeDataNode<std::int64_t>(0) {}
   explicit SumNode(std::int64_t value) : octomap::OcTreeDataNode<std::int64_t>(value) {}
-#ifndef __SANITIZE_ADDRESS__
+#ifndef MAPMERGE_SANITIZE_BUILD  // AddressSanitizer must see the nodes (tracked, checked, leak-scanned)
   // Nodes come from TBB's scalable allocator: GlobalFusion creates them on several threads and
   // the encoder frees them on others; with glibc's arenas, a node made on a helper thread and
   // freed on another cost the encoding twice as long.
