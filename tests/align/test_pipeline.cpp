@@ -110,6 +110,28 @@ TEST(AlignPipeline, SameDefaultsRecoverAMapOnA2cmGrid) {
   EXPECT_LT(e.trans_m, tree->getResolution());
 }
 
+TEST(AlignPipeline, GroundRemovalLeavesTheFloorToIcpAndFindsTheSameTransform) {
+  const auto tree = load("geb079.bt");  // 8 cm: a corridor, its floor ~20 % of the voxels
+  const Pair p = make_pair(*tree, box(-9, -9, -1, 12, 9, 4), box(6, -9, -1, 31, 9, 4),
+                           mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155));
+  ma::AlignConfig no_ground;
+  no_ground.preprocess.remove_ground = true;
+  // Keypoints and descriptors do without the floor; the ICP cloud keeps it.
+  const ma::PreparedMap with = ma::prepare_map(*p.source, ma::AlignConfig{});
+  const ma::PreparedMap without = ma::prepare_map(*p.source, no_ground);
+  EXPECT_EQ(without.num_filtered(), with.num_filtered());
+  const ma::AlignResult plain = ma::align_maps(*p.target, *p.source, ma::AlignConfig{});
+  const ma::AlignResult r = ma::align_maps(*p.target, *p.source, no_ground);
+  ASSERT_TRUE(plain.accepted) << plain.reason;
+  ASSERT_TRUE(r.accepted) << r.reason;
+  const Errors e = errors(r.T_target_source, p.T_true);
+  EXPECT_LT(e.rot_deg, 1.0);
+  EXPECT_LT(e.trans_m, 0.5 * tree->getResolution());
+  const Errors apart = errors(r.T_target_source, plain.T_target_source);
+  EXPECT_LT(apart.trans_m, 0.01);  // the same refinement's optimum
+  EXPECT_LT(apart.rot_deg, 0.1);
+}
+
 TEST(AlignPipeline, RecoversARoomWithSubmodels) {
   const auto tree = load("fr_078_tidyup.bt");
   const Pair p = make_pair(*tree, box(-11, -9, -2, -1, 6, 4), box(-6, -9, -2, 3, 6, 4),

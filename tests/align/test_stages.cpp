@@ -224,3 +224,52 @@ TEST(CropAndTransform, BoxLargerThanTheMapKeepsEveryVoxel) {
   const Eigen::AlignedBox3d far(Eigen::Vector3d::Constant(1e5), Eigen::Vector3d::Constant(1e6));
   EXPECT_EQ(mapmerge::crop_and_transform(*tree, far, Eigen::Isometry3d::Identity())->size(), 0U);
 }
+
+namespace {
+
+/// The occupied voxel centres of a real map, each moved by `T`.
+std::vector<Eigen::Vector3f> map_points(const std::string& file, const Eigen::Affine3f& T = Eigen::Affine3f::Identity()) {
+  const auto tree = mapmerge::read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/" + file);
+  std::vector<Eigen::Vector3f> out;
+  for (const auto& p : ma::to_points(*tree, {})) out.push_back(T * p.position);
+  return out;
+}
+
+float quantile_z(std::vector<Eigen::Vector3f> points, double q) {
+  const auto k = static_cast<std::size_t>(q * static_cast<double>(points.size() - 1));
+  std::nth_element(points.begin(), points.begin() + static_cast<std::ptrdiff_t>(k), points.end(),
+                   [](const Eigen::Vector3f& a, const Eigen::Vector3f& b) { return a.z() < b.z(); });
+  return points[k].z();
+}
+
+}  // namespace
+
+TEST(Ground, ACorridorsFloorIsTheGroundTheSameEveryTime) {
+  const auto points = map_points("geb079.bt");
+  const auto ground = ma::ground_points(points, {}, 0.08);
+  ASSERT_GT(ground.size(), points.size() / 10);  // a corridor's floor is a large share of it
+  std::vector<Eigen::Vector3f> floor;
+  for (const std::size_t i : ground) floor.push_back(points[i]);
+  // The lowest layer of the map: the floor's middle is at the map's bottom, and every ground
+  // point is within ground_distance (1.5 x 8 cm) of a plane at most 10 deg from level.
+  EXPECT_NEAR(quantile_z(floor, 0.5), quantile_z(points, 0.05), 0.1);
+  EXPECT_LT(quantile_z(floor, 1.0), quantile_z(points, 0.5));
+  EXPECT_EQ(ma::ground_points(points, {}, 0.08), ground);  // one RANSAC thread: deterministic
+}
+
+TEST(Ground, ACeilingIsNotTheGround) {
+  const Eigen::Affine3f upside_down(Eigen::AngleAxisf(static_cast<float>(M_PI), Eigen::Vector3f::UnitX()));
+  EXPECT_TRUE(ma::ground_points(map_points("geb079.bt", upside_down), {}, 0.08).empty());
+  EXPECT_TRUE(ma::ground_points(map_points("fr_078_tidyup.bt", upside_down), {}, 0.05).empty());
+}
+
+TEST(Ground, ATiltedFloorIsGroundWithinTheTiltLimitOnly) {
+  const auto level = ma::ground_points(map_points("geb079.bt"), {}, 0.08);
+  const auto tilted = map_points("geb079.bt", Eigen::Affine3f(Eigen::AngleAxisf(static_cast<float>(5.0 * M_PI / 180.0),
+                                                                                  Eigen::Vector3f::UnitX())));
+  ma::PreprocessConfig c;  // 10 deg
+  EXPECT_NEAR(static_cast<double>(ma::ground_points(tilted, c, 0.08).size()), static_cast<double>(level.size()),
+              0.01 * static_cast<double>(level.size()));
+  c.ground_max_tilt_deg = 2.0;
+  EXPECT_LT(ma::ground_points(tilted, c, 0.08).size(), level.size() / 2);
+}

@@ -14,9 +14,8 @@
 #include <pcl/filters/statistical_outlier_removal.h>
 #include <pcl/filters/voxel_grid.h>
 #include <pcl/keypoints/iss_3d.h>
-#include <pcl/sample_consensus/method_types.h>
-#include <pcl/sample_consensus/model_types.h>
-#include <pcl/segmentation/sac_segmentation.h>
+#include <pcl/sample_consensus/ransac.h>
+#include <pcl/sample_consensus/sac_model_perpendicular_plane.h>
 
 #include "mapmerge/align/stages.hpp"
 #include "mapmerge/map/held_map.hpp"
@@ -39,27 +38,48 @@ typename pcl::PointCloud<P>::Ptr to_cloud(const std::vector<OccupiedPoint>& poin
   return cloud;
 }
 
-Cloud::Ptr remove_ground(const Cloud::Ptr& cloud, const PreprocessConfig& c, double res) {
-  pcl::SACSegmentation<Point> seg;
-  seg.setModelType(pcl::SACMODEL_PERPENDICULAR_PLANE);
-  seg.setMethodType(pcl::SAC_RANSAC);
-  seg.setAxis(Eigen::Vector3f::UnitZ());
-  seg.setEpsAngle(static_cast<float>(c.ground_max_tilt_deg * M_PI / 180.0));
-  seg.setDistanceThreshold(c.ground_distance * res);
-  seg.setMaxIterations(200);
-  seg.setInputCloud(cloud);
-  pcl::PointIndices inliers;
-  pcl::ModelCoefficients coefficients;
-  seg.segment(inliers, coefficients);
-  if (inliers.indices.empty()) return cloud;
-  // Only a plane below most of the map is ground (not a ceiling, not a wall).
-  const float plane_z = (*cloud)[inliers.indices.front()].z;
+/// Bare points as a cloud (intensity and normal zero).
+Cloud::Ptr bare_cloud(const std::vector<Eigen::Vector3f>& points) {
+  auto cloud = std::make_shared<Cloud>();
+  cloud->reserve(points.size());
+  for (const auto& p : points) cloud->push_back(Point(p.x(), p.y(), p.z(), 0.0F));
+  return cloud;
+}
+
+/// Indices of the ground: the points within ground_distance of the largest plane whose normal is
+/// within ground_max_tilt_deg of z (RANSAC on one thread, so the same cloud gives the same
+/// plane), if at most a quarter of the cloud lies below that plane (not a ceiling, not a table
+/// top); else none.
+pcl::Indices ground_indices(const Cloud::ConstPtr& cloud, const PreprocessConfig& c, double res) {
+  auto plane = std::make_shared<pcl::SampleConsensusModelPerpendicularPlane<Point>>(cloud);
+  plane->setAxis(Eigen::Vector3f::UnitZ());
+  plane->setEpsAngle(c.ground_max_tilt_deg * M_PI / 180.0);
+  const double distance = c.ground_distance * res;
+  pcl::RandomSampleConsensus<Point> ransac(plane, distance);
+  ransac.setMaxIterations(200);
+  ransac.setNumberOfThreads(1);
+  if (!ransac.computeModel()) return {};
+  pcl::Indices inliers;
+  ransac.getInliers(inliers);
+  Eigen::VectorXf coefficients, refined;
+  ransac.getModelCoefficients(coefficients);
+  plane->optimizeModelCoefficients(inliers, coefficients, refined);  // least squares on the inliers
+  plane->selectWithinDistance(refined, distance, inliers);
+  if (inliers.empty() || refined.size() != 4) return {};
+  // Below the plane: on the side its normal, turned up, points away from.
+  const Eigen::Vector4f up = refined[2] < 0.0F ? Eigen::Vector4f(-refined) : Eigen::Vector4f(refined);
   std::size_t below = 0;
-  for (const auto& p : *cloud) below += p.z < plane_z ? 1 : 0;
-  if (below > cloud->size() / 4) return cloud;
+  for (const auto& p : *cloud) below += up.head<3>().dot(p.getVector3fMap()) + up[3] < 0.0F ? 1 : 0;
+  if (below > cloud->size() / 4) return {};
+  return inliers;
+}
+
+Cloud::Ptr remove_ground(const Cloud::Ptr& cloud, const PreprocessConfig& c, double res) {
+  const pcl::Indices ground = ground_indices(cloud, c, res);
+  if (ground.empty()) return cloud;
   pcl::ExtractIndices<Point> extract;
   extract.setInputCloud(cloud);
-  extract.setIndices(std::make_shared<pcl::PointIndices>(inliers));
+  extract.setIndices(std::make_shared<pcl::Indices>(ground));
   extract.setNegative(true);
   auto out = std::make_shared<Cloud>();
   extract.filter(*out);
@@ -77,7 +97,8 @@ Cloud::Ptr voxel_grid(const Cloud::Ptr& cloud, double leaf_size) {
   return out;
 }
 
-/// Stage 2: pass-through, ground removal, voxel grid, statistical outlier removal.
+/// Stage 2: pass-through, voxel grid, statistical outlier removal (the ground goes from the
+/// describe cloud only: see prepare_stages).
 Cloud::Ptr preprocess(const Cloud::Ptr& input, const PreprocessConfig& c, const LengthUnits& units) {
   const double res = units.res;
   Cloud::Ptr cloud = input;
@@ -87,7 +108,6 @@ Cloud::Ptr preprocess(const Cloud::Ptr& input, const PreprocessConfig& c, const 
       if (p.z >= c.z_min && p.z <= c.z_max) kept->push_back(p);
     cloud = kept;
   }
-  if (c.remove_ground && cloud->size() > 100) cloud = remove_ground(cloud, c, units.tolerance);
   const double leaf = c.voxel_size * units.preprocess;
   if (leaf > 1.01 * res) cloud = voxel_grid(cloud, leaf);
   if (c.outlier_removal && cloud->size() > static_cast<std::size_t>(c.outlier_mean_k) + 1) {
@@ -286,7 +306,13 @@ PreparedMap prepare_stages(double res, ReadPoints&& read_points, ReadFree&& read
     m->timings.total_ms = ms_since(t_start);
     return PreparedMap(std::move(m));
   }
-  m->coarse = voxel_grid(m->cloud, config.describe.voxel_size * units.feature);
+  // The ground has no features (the paper): keypoints and descriptors do without it. ICP keeps
+  // it (its target crop: the only surface that fixes height, roll and pitch in a corridor) and
+  // so do validation and fusion.
+  const Cloud::Ptr featured = config.preprocess.remove_ground && m->cloud->size() > 100
+                                  ? remove_ground(m->cloud, config.preprocess, units.tolerance)
+                                  : m->cloud;
+  m->coarse = voxel_grid(featured, config.describe.voxel_size * units.feature);
   // One tree over the coarse cloud serves its normals, ISS and the descriptors.
   const auto coarse_tree = std::make_shared<SerialKdTree<Point>>();
   coarse_tree->setInputCloud(m->coarse);
@@ -333,14 +359,15 @@ PreparedMap prepare_for_refine(const HeldMap& map, const AlignConfig& config) {
   return prepare_held(map, config, false);
 }
 
+std::vector<std::size_t> ground_points(const std::vector<Eigen::Vector3f>& points,
+                                       const PreprocessConfig& config, double unit) {
+  const pcl::Indices ground = ground_indices(bare_cloud(points), config, unit);
+  return std::vector<std::size_t>(ground.begin(), ground.end());
+}
+
 std::vector<std::size_t> iss_keypoints(const std::vector<Eigen::Vector3f>& points,
                                        const KeypointConfig& config, double unit) {
-  auto cloud = std::make_shared<Cloud>();
-  for (const auto& p : points) {
-    Point q;
-    q.getVector3fMap() = p;
-    cloud->push_back(q);
-  }
+  const Cloud::Ptr cloud = bare_cloud(points);
   auto tree = std::make_shared<SerialKdTree<Point>>();
   tree->setInputCloud(cloud);
   const pcl::IndicesPtr indices = detect_iss(cloud, tree, config, unit);

@@ -34,12 +34,13 @@ struct ToPointsConfig {
   std::size_t max_points = 20'000'000;  ///< refuse maps whose expanded occupied voxels exceed this [points]
 };
 
-/// Stage 2: pass-through, ground removal, voxel grid, statistical outlier removal.
+/// Stage 2: pass-through, voxel grid, statistical outlier removal; and the ground, which only
+/// keypoints and descriptors (stages 4-5) do without.
 struct PreprocessConfig {
   bool pass_through = false;  ///< keep only points with z in [z_min, z_max]
   double z_min = -std::numeric_limits<double>::infinity();  ///< pass-through lower limit [m, map frame]
   double z_max = std::numeric_limits<double>::infinity();   ///< pass-through upper limit [m, map frame]
-  bool remove_ground = false;      ///< remove the dominant near-horizontal plane (the paper: ground has no features)
+  bool remove_ground = false;      ///< leave the dominant near-horizontal plane out of keypoints and descriptors (the paper: ground has no features); ICP and validation keep it
   double ground_distance = 1.5;    ///< plane inlier distance [x res]
   double ground_max_tilt_deg = 10.0;  ///< largest angle between plane normal and z for a ground plane [deg]
   double voxel_size = 2.5;         ///< voxel-grid leaf of the cloud used by ICP [x u, at least 1 res]
