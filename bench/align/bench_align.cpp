@@ -54,6 +54,7 @@ struct Row {
   /// T_err of the local alignment (stage 8) started at the true transform: the error the data
   /// itself leaves (the source was resampled on its own grid after the move), a floor for T_err.
   double floor_t_err = std::nan("");
+  double floor_fitness = std::nan("");  ///< the fitness (Eq. 6) of that transform [m]
 };
 
 struct Errors {
@@ -148,6 +149,7 @@ Row run_case(const std::string& map, const Prepared& target, const Prepared& sou
     const ma::AlignResult from_truth = ma::refine(target.map, source.map, pose.matrix().inverse(), v.config);
     const Errors floor = errors(from_truth.T_target_source, pose.matrix());
     row.floor_t_err = floor.t_err;
+    row.floor_fitness = from_truth.fitness;
     if (floor_only)
       std::cerr << std::lround(overlap * 100) << "% " << pose.str() << " from the truth: T_err " << fmt(floor.t_err)
                 << " rot " << fmt(floor.rot_deg, 2) << " trans " << fmt(floor.trans_m) << "\n";
@@ -216,22 +218,6 @@ void print_summary(std::ostream& out, const std::vector<Row>& rows) {
           << fmt(quantile(trans, 0.5)) << " | " << fmt(quantile(time, 0.5), 2) << " | "
           << fmt(quantile(floor, 0.5)) << " |\n";
     }
-}
-
-/// x (or y) positions splitting the occupied voxels so that the two parts share `overlap`.
-std::pair<double, double> cut_positions(const octomap::OcTree& tree, int axis, double overlap) {
-  std::vector<double> coords;
-  const double res = tree.getResolution();
-  for (auto it = tree.begin_leafs(); it != tree.end_leafs(); ++it) {
-    if (!tree.isNodeOccupied(*it)) continue;
-    const int n = static_cast<int>(it.getSize() / res + 0.5);
-    const double c = it.getCoordinate()(axis);
-    for (int i = 0; i < n; ++i)
-      coords.insert(coords.end(), static_cast<std::size_t>(n * n), c - it.getSize() / 2 + res * (i + 0.5));
-  }
-  std::sort(coords.begin(), coords.end());
-  auto at = [&](double q) { return coords[static_cast<std::size_t>(q * (coords.size() - 1))]; };
-  return {at((1.0 - overlap) / 2.0), at((1.0 + overlap) / 2.0)};
 }
 
 }  // namespace
@@ -364,7 +350,7 @@ int main(int argc, char** argv) {
     tree->getMetricMin(lo_all[0], lo_all[1], lo_all[2]);
     tree->getMetricMax(hi_all[0], hi_all[1], hi_all[2]);
     for (int pct : overlaps) {
-      const auto [cut_lo, cut_hi] = cut_positions(*tree, axis, pct / 100.0);
+      const auto [cut_lo, cut_hi] = mapmerge::overlap_cut(*tree, axis, pct / 100.0);
       Eigen::AlignedBox3d target_box(Eigen::Vector3d(lo_all[0], lo_all[1], lo_all[2]) - Eigen::Vector3d::Constant(1),
                                      Eigen::Vector3d(hi_all[0], hi_all[1], hi_all[2]) + Eigen::Vector3d::Constant(1));
       Eigen::AlignedBox3d source_box = target_box;
@@ -389,7 +375,8 @@ int main(int argc, char** argv) {
                     << (r.success ? "ok" : (r.accepted ? "WRONG" : "rejected (" + r.reason + ")"))
                     << " rot " << fmt(r.rot_err, 2) << " trans " << fmt(r.trans_err) << " t "
                     << fmt(r.time_ms / 1000, 2) << "s f " << fmt(r.fitness, 4) << " share "
-                    << fmt(r.inlier_share) << " ovl " << fmt(r.overlap_est) << " in " << r.inliers << "\n";
+                    << fmt(r.inlier_share) << " ovl " << fmt(r.overlap_est) << " in " << r.inliers
+                    << "; from the truth: T_err " << fmt(r.floor_t_err) << " f " << fmt(r.floor_fitness, 4) << "\n";
         }
       }
     }

@@ -225,6 +225,31 @@ TEST(CropAndTransform, BoxLargerThanTheMapKeepsEveryVoxel) {
   EXPECT_EQ(mapmerge::crop_and_transform(*tree, far, Eigen::Isometry3d::Identity())->size(), 0U);
 }
 
+TEST(CropAndTransform, AnOverlapCutsPartsShareThatShareOfTheOccupiedVoxels) {
+  const auto tree = mapmerge::read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/geb079.bt");
+  const Eigen::AlignedBox3d all(Eigen::Vector3d::Constant(-1e6), Eigen::Vector3d::Constant(1e6));
+  const auto total = static_cast<double>(mapmerge::count_occupied(*tree, all));
+  for (const int axis : {0, 1}) {
+    for (const double share : {0.1, 0.3}) {
+      const auto [first, second] = mapmerge::overlap_cut(*tree, axis, share);
+      ASSERT_LT(first, second);
+      Eigen::AlignedBox3d both = all, below = all, above = all;
+      both.min()(axis) = first;
+      both.max()(axis) = second;
+      below.max()(axis) = second;
+      above.min()(axis) = first;
+      // To within the layer of voxels at a cut (a wall across the corridor: up to ~2 % here).
+      constexpr double kLayer = 0.03;
+      EXPECT_NEAR(static_cast<double>(mapmerge::count_occupied(*tree, both)) / total, share, kLayer);
+      // The parts are the map below the second cut and above the first: equal halves of the rest.
+      EXPECT_NEAR(static_cast<double>(mapmerge::count_occupied(*tree, below)) / total, (1.0 + share) / 2, kLayer);
+      EXPECT_NEAR(static_cast<double>(mapmerge::count_occupied(*tree, above)) / total, (1.0 + share) / 2, kLayer);
+    }
+  }
+  EXPECT_THROW(mapmerge::overlap_cut(*tree, 3, 0.1), std::invalid_argument);
+  EXPECT_THROW(mapmerge::overlap_cut(*tree, 0, 1.5), std::invalid_argument);
+}
+
 namespace {
 
 /// The occupied voxel centres of a real map, each moved by `T`.

@@ -96,6 +96,8 @@ void for_each_field(Config& c, F&& f) {
   f("refine", "convergence_rotation_deg", r.convergence_rotation_deg);
   f("refine", "max_points", r.max_points);
   f("refine", "final_points", r.final_points);
+  f("refine", "restart_deg", r.restart_deg);
+  f("refine", "restart_fitness", r.restart_fitness);
   f("refine", "ndt_resolution", r.ndt_resolution);
   f("refine", "ndt_step", r.ndt_step);
 }
@@ -260,6 +262,8 @@ void check_align_config(const AlignConfig& c) {
   require(c.refine.max_correspondence > 0.0 && c.refine.final_correspondence > 0.0,
           "refine correspondence distances > 0");
   require(c.refine.max_points >= 10, "refine.max_points >= 10");
+  require(c.refine.restart_deg >= 0.0 && c.refine.restart_deg <= 45.0, "refine.restart_deg in [0, 45]");
+  require(c.refine.restart_fitness >= 0.0, "refine.restart_fitness >= 0");
 }
 
 AlignConfig parse_align_config(const std::string& yaml_text) {

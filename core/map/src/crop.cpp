@@ -1,7 +1,9 @@
 #include "mapmerge/map/crop.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <stdexcept>
+#include <vector>
 
 #include "mapmerge/map/bounds.hpp"
 #include "mapmerge/map/fusion.hpp"
@@ -154,6 +156,24 @@ std::size_t count_occupied(const octomap::OcTree& tree, const Eigen::AlignedBox3
   std::size_t n = 0;
   for_each_voxel(tree, box, [&](const Eigen::Vector3d&, float, bool occupied) { n += occupied ? 1 : 0; });
   return n;
+}
+
+std::pair<double, double> overlap_cut(const octomap::OcTree& tree, int axis, double overlap) {
+  if (axis < 0 || axis > 2) throw std::invalid_argument("overlap_cut: axis must be 0, 1 or 2");
+  if (!(overlap >= 0.0 && overlap <= 1.0)) throw std::invalid_argument("overlap_cut: overlap must be in [0, 1]");
+  std::vector<double> coords;  // the axis coordinate of every occupied voxel
+  const double res = tree.getResolution();
+  for (auto it = tree.begin_leafs(); it != tree.end_leafs(); ++it) {
+    if (!tree.isNodeOccupied(*it)) continue;
+    const int n = static_cast<int>(it.getSize() / res + 0.5);
+    const double c = it.getCoordinate()(axis);
+    for (int i = 0; i < n; ++i)
+      coords.insert(coords.end(), static_cast<std::size_t>(n * n), c - it.getSize() / 2 + res * (i + 0.5));
+  }
+  if (coords.empty()) throw std::invalid_argument("overlap_cut: the map has no occupied voxel");
+  std::sort(coords.begin(), coords.end());
+  auto at = [&](double q) { return coords[static_cast<std::size_t>(q * static_cast<double>(coords.size() - 1))]; };
+  return {at((1.0 - overlap) / 2.0), at((1.0 + overlap) / 2.0)};
 }
 
 }  // namespace mapmerge

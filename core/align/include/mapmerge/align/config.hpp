@@ -138,6 +138,12 @@ struct RefineConfig {
   double convergence_rotation_deg = 0.02;  ///< ... and rotates less than this [deg]
   std::size_t max_points = 3000;  ///< source points in the overlap used by ICP on each candidate [count]
   std::size_t final_points = 10000;  ///< ... by the final pass on the chosen transform (and by refine()) [count]
+  /// Restarts of the final pass from its result turned by +-restart_deg about each axis, when
+  /// its fitness is above restart_fitness: a narrow overlap can leave ICP in a local minimum a
+  /// few degrees off whose fit is visibly looser than a true alignment's (~0.5 voxel: two grids'
+  /// centres). The restart with the closest fit that still validates wins. 0 = off [deg]
+  double restart_deg = 3.0;
+  double restart_fitness = 0.6;  ///< ... above this fitness [x the coarser map's own resolution, not floored]
   double ndt_resolution = 8.0;   ///< NDT cell size [x max(u, res)]
   double ndt_step = 4.0;         ///< NDT More-Thuente step size [x max(u, res)]
 };

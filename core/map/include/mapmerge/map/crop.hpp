@@ -3,6 +3,7 @@
 /// demo make partial robot maps with a known ground-truth transform from one real map.
 
 #include <memory>
+#include <utility>
 
 #include <Eigen/Geometry>
 #include <octomap/OcTree.h>
@@ -36,5 +37,10 @@ std::unique_ptr<octomap::OcTree> refine(const octomap::OcTree& tree, double reso
 
 /// Number of occupied full-resolution voxels whose centres lie in `box`.
 std::size_t count_occupied(const octomap::OcTree& tree, const Eigen::AlignedBox3d& box);
+
+/// Where to cut `tree` along `axis` (0: x, 1: y, 2: z) into two parts that share `overlap` of
+/// its occupied full-resolution voxels ([0..1]): the first part is the map below `second`, the
+/// other the map above `first` (first <= second) [m]. The paper's Table 1 overlap r.
+std::pair<double, double> overlap_cut(const octomap::OcTree& tree, int axis, double overlap);
 
 }  // namespace mapmerge
