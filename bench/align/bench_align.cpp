@@ -346,16 +346,8 @@ int main(int argc, char** argv) {
       }
     }
 
-    double lo_all[3], hi_all[3];
-    tree->getMetricMin(lo_all[0], lo_all[1], lo_all[2]);
-    tree->getMetricMax(hi_all[0], hi_all[1], hi_all[2]);
     for (int pct : overlaps) {
-      const auto [cut_lo, cut_hi] = mapmerge::overlap_cut(*tree, axis, pct / 100.0);
-      Eigen::AlignedBox3d target_box(Eigen::Vector3d(lo_all[0], lo_all[1], lo_all[2]) - Eigen::Vector3d::Constant(1),
-                                     Eigen::Vector3d(hi_all[0], hi_all[1], hi_all[2]) + Eigen::Vector3d::Constant(1));
-      Eigen::AlignedBox3d source_box = target_box;
-      target_box.max()(axis) = cut_hi;
-      source_box.min()(axis) = cut_lo;
+      const auto [target_box, source_box] = mapmerge::overlap_cut(*tree, axis, pct / 100.0);
       auto target = on_grid(mapmerge::crop_and_transform(*tree, target_box, Eigen::Isometry3d::Identity()));
       std::map<std::string, Prepared> target_cache;
       for (int t = 0; t < trials; ++t) {

@@ -137,14 +137,7 @@ TEST(AlignPipeline, ANarrowOverlapsLooseLocalFitGivesWayToTheTruesOne) {
   // (a 1.4 m strip): the final ICP pass stopped 3.2 deg and 0.5 m off (fitness 0.034 m, the
   // truth's 0.027 m) and that passed validation. refine.restart_deg's restarts find the truth's.
   const auto tree = load("fr_078_tidyup.bt");
-  const auto [cut_lo, cut_hi] = mapmerge::overlap_cut(*tree, 0, 0.10);
-  double lo[3], hi[3];
-  tree->getMetricMin(lo[0], lo[1], lo[2]);
-  tree->getMetricMax(hi[0], hi[1], hi[2]);
-  const Box all = box(lo[0] - 1, lo[1] - 1, lo[2] - 1, hi[0] + 1, hi[1] + 1, hi[2] + 1);
-  Box target_box = all, source_box = all;
-  target_box.max().x() = cut_hi;
-  source_box.min().x() = cut_lo;
+  const auto [target_box, source_box] = mapmerge::overlap_cut(*tree, 0, 0.10);
   // The bench's 12th transform at 10 % (--seed 1): (-3.6, 2.9, -0.5, 4°, 0°, -19°).
   const Pair p = make_pair(*tree, target_box, source_box,
                            mapmerge::paper_transform(-3.600338796005131, 2.92403579343783, -0.47019863968142428,

@@ -231,13 +231,9 @@ TEST(CropAndTransform, AnOverlapCutsPartsShareThatShareOfTheOccupiedVoxels) {
   const auto total = static_cast<double>(mapmerge::count_occupied(*tree, all));
   for (const int axis : {0, 1}) {
     for (const double share : {0.1, 0.3}) {
-      const auto [first, second] = mapmerge::overlap_cut(*tree, axis, share);
-      ASSERT_LT(first, second);
-      Eigen::AlignedBox3d both = all, below = all, above = all;
-      both.min()(axis) = first;
-      both.max()(axis) = second;
-      below.max()(axis) = second;
-      above.min()(axis) = first;
+      const auto [below, above] = mapmerge::overlap_cut(*tree, axis, share);
+      ASSERT_LT(above.min()(axis), below.max()(axis));
+      const Eigen::AlignedBox3d both = below.intersection(above);
       // To within the layer of voxels at a cut (a wall across the corridor: up to ~2 % here).
       constexpr double kLayer = 0.03;
       EXPECT_NEAR(static_cast<double>(mapmerge::count_occupied(*tree, both)) / total, share, kLayer);

@@ -488,8 +488,9 @@ void restart_from_turns(const PreparedMap::Impl& target, const PreparedMap::Impl
                         const AlignConfig& cfg, Candidate& best, StageTimings& t,
                         std::atomic<double>& validate_ms, double keep_ratio) {
   const double deg = cfg.refine.restart_deg;
-  if (deg <= 0.0 || !(best.fine.fitness > cfg.refine.restart_fitness * scale_of(target, source))) return;
-  const LengthUnits units = length_units(scale_of(target, source), cfg);
+  const double map_res = scale_of(target, source);
+  if (deg <= 0.0 || !(best.fine.fitness > cfg.refine.restart_fitness * map_res)) return;
+  const LengthUnits units = length_units(map_res, cfg);
   const double res = units.tolerance;
   const double w = cfg.validate.conflict_weight;
   const Cloud::Ptr crop = crop_target(*target.cloud, source, best.T_refined, cfg.refine.crop_margin * units.refine);
@@ -516,6 +517,15 @@ void restart_from_turns(const PreparedMap::Impl& target, const PreparedMap::Impl
       }
     }
   }
+}
+
+/// The chosen candidate's last refinement, once the verdict is taken: the final pass on fine
+/// planes (sub-voxel, none averaged across a coarse map's staircase), then restarts when its fit
+/// is loose. `from_polished`: the start is a polished transform (no pair-distance ramp).
+void final_pass(const PreparedMap::Impl& target, const PreparedMap::Impl& source, const AlignConfig& cfg,
+                Candidate& best, StageTimings& t, std::atomic<double>& validate_ms, bool from_polished) {
+  polish(target, source, cfg, best, t, validate_ms, 0.98, Pass::kFine, from_polished);
+  restart_from_turns(target, source, cfg, best, t, validate_ms, 0.98);
 }
 
 }  // namespace
@@ -566,10 +576,8 @@ AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
   std::string why = select_best(cands, cfg.validate, units);
   add_ms(validate_ms, t0);
   if (why.empty()) {
-    // The verdict is taken: the final pass fits fine planes (sub-voxel, none averaged across a
-    // coarse map's staircase), with the pair-distance ramp (a candidate may still be degrees off).
-    polish(target, source, cfg, cands.front(), result.timings, validate_ms, 0.98, Pass::kFine);
-    restart_from_turns(target, source, cfg, cands.front(), result.timings, validate_ms, 0.98);
+    // With the pair-distance ramp: a candidate may still be degrees off.
+    final_pass(target, source, cfg, cands.front(), result.timings, validate_ms, false);
   } else if (why.rfind(kAmbiguous, 0) == 0) {
     // Near-equal distinct candidates are often one basin that the first ICP left apart: the
     // final pass brings them together (then one is a duplicate) or shows which one is better.
@@ -579,10 +587,8 @@ AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
     t0 = Clock::now();
     why = select_best(cands, cfg.validate, units);
     add_ms(validate_ms, t0);
-    if (why.empty()) {  // polished already: fine planes from there, at the last pair distance
-      polish(target, source, cfg, cands.front(), result.timings, validate_ms, 0.98, Pass::kFine, true);
-      restart_from_turns(target, source, cfg, cands.front(), result.timings, validate_ms, 0.98);
-    }
+    if (why.empty())  // polished already: fine planes from there, at the last pair distance
+      final_pass(target, source, cfg, cands.front(), result.timings, validate_ms, true);
   }
   Candidate& best = cands.front();
   result.accepted = why.empty();

@@ -158,7 +158,7 @@ std::size_t count_occupied(const octomap::OcTree& tree, const Eigen::AlignedBox3
   return n;
 }
 
-std::pair<double, double> overlap_cut(const octomap::OcTree& tree, int axis, double overlap) {
+OverlapCut overlap_cut(const octomap::OcTree& tree, int axis, double overlap) {
   if (axis < 0 || axis > 2) throw std::invalid_argument("overlap_cut: axis must be 0, 1 or 2");
   if (!(overlap >= 0.0 && overlap <= 1.0)) throw std::invalid_argument("overlap_cut: overlap must be in [0, 1]");
   std::vector<double> coords;  // the axis coordinate of every occupied voxel
@@ -173,7 +173,16 @@ std::pair<double, double> overlap_cut(const octomap::OcTree& tree, int axis, dou
   if (coords.empty()) throw std::invalid_argument("overlap_cut: the map has no occupied voxel");
   std::sort(coords.begin(), coords.end());
   auto at = [&](double q) { return coords[static_cast<std::size_t>(q * static_cast<double>(coords.size() - 1))]; };
-  return {at((1.0 - overlap) / 2.0), at((1.0 + overlap) / 2.0)};
+  double lo[3], hi[3];
+  tree.getMetricMin(lo[0], lo[1], lo[2]);
+  tree.getMetricMax(hi[0], hi[1], hi[2]);
+  OverlapCut cut;
+  cut.first = Eigen::AlignedBox3d(Eigen::Vector3d(lo[0], lo[1], lo[2]) - Eigen::Vector3d::Constant(1),
+                                  Eigen::Vector3d(hi[0], hi[1], hi[2]) + Eigen::Vector3d::Constant(1));
+  cut.second = cut.first;
+  cut.first.max()(axis) = at((1.0 + overlap) / 2.0);
+  cut.second.min()(axis) = at((1.0 - overlap) / 2.0);
+  return cut;
 }
 
 }  // namespace mapmerge

@@ -29,9 +29,10 @@ std::vector<OccupiedPoint> to_points(const octomap::OcTree& tree, const ToPoints
 /// order, as to_points(*map.tree()); a map without a body is read off its tree.
 std::vector<OccupiedPoint> to_points(const HeldMap& map, const ToPointsConfig& config);
 
-/// Stage 2's ground removal on a bare point set: indices of the points preprocess() removes as
-/// ground (empty when there is no near-horizontal plane, or more than a quarter of the points
-/// lie below it: a ceiling or a table top is no ground).
+/// Stage 2's ground on a bare point set: indices of the points that preprocess.remove_ground
+/// leaves out of keypoints and descriptors (the pipeline asks this of its preprocessed cloud);
+/// empty when there is no near-horizontal plane, or more than a quarter of the points lie below
+/// it: a ceiling or a table top is no ground.
 /// `unit`: the "x res" unit of ground_distance [m] (length_units(res, config).tolerance).
 std::vector<std::size_t> ground_points(const std::vector<Eigen::Vector3f>& points,
                                        const PreprocessConfig& config, double unit);

@@ -3,7 +3,6 @@
 /// demo make partial robot maps with a known ground-truth transform from one real map.
 
 #include <memory>
-#include <utility>
 
 #include <Eigen/Geometry>
 #include <octomap/OcTree.h>
@@ -38,9 +37,13 @@ std::unique_ptr<octomap::OcTree> refine(const octomap::OcTree& tree, double reso
 /// Number of occupied full-resolution voxels whose centres lie in `box`.
 std::size_t count_occupied(const octomap::OcTree& tree, const Eigen::AlignedBox3d& box);
 
-/// Where to cut `tree` along `axis` (0: x, 1: y, 2: z) into two parts that share `overlap` of
-/// its occupied full-resolution voxels ([0..1]): the first part is the map below `second`, the
-/// other the map above `first` (first <= second) [m]. The paper's Table 1 overlap r.
-std::pair<double, double> overlap_cut(const octomap::OcTree& tree, int axis, double overlap);
+/// Two parts of `tree` cut along `axis` (0: x, 1: y, 2: z) that share `overlap` ([0..1]) of its
+/// occupied full-resolution voxels, the paper's Table 1 overlap r: `first` is the map below the
+/// upper cut, `second` the map above the lower cut; each box reaches 1 m beyond the map's other
+/// bounds.
+struct OverlapCut {
+  Eigen::AlignedBox3d first, second;
+};
+OverlapCut overlap_cut(const octomap::OcTree& tree, int axis, double overlap);
 
 }  // namespace mapmerge
