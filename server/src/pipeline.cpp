@@ -220,6 +220,7 @@ std::shared_ptr<const align::PreparedMap> Pipeline::prepared(const std::string& 
 }
 
 void Pipeline::search_unknown(const RobotRecord& rec) {
+  const Registry::AlignmentUse hold_me(registry_, rec.robot_id);
   const auto me = prepared(rec.robot_id, true);
   if (!me) return;
   std::vector<std::shared_ptr<const RobotRecord>> candidates;
@@ -239,6 +240,7 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
   });
   for (const auto& [refused, other] : order) {
     if (hooks_.cancelled && hooks_.cancelled()) return;
+    const Registry::AlignmentUse hold_target(registry_, other->robot_id);
     const auto target = prepared(other->robot_id, true);
     if (!target) continue;
     spdlog::info("merge {} <- {}: global search started", other->robot_id, rec.robot_id);
@@ -292,11 +294,13 @@ bool Pipeline::refine_known(const RobotRecord& rec) {
     }
   }
   if (edges.empty()) return false;
+  const Registry::AlignmentUse hold_me(registry_, rec.robot_id);
   const auto me = prepared(rec.robot_id, false);
   if (!me) return false;
   bool moved = false;
   bool refined = false;
   for (const Edge& e : edges) {
+    const Registry::AlignmentUse hold_target(registry_, e.target);
     const auto target = prepared(e.target, false);
     if (!target) continue;
     spdlog::debug("merge {} <- {}: refinement started", e.target, e.source);
@@ -502,6 +506,7 @@ void Pipeline::align_extra_pair(const ExtraPair& p) {
     in_progress_.erase(ordered(p.target, p.source));
   };
   const auto cancelled = [&] { return hooks_.cancelled && hooks_.cancelled(); };
+  const Registry::AlignmentUse hold_target(registry_, p.target), hold_source(registry_, p.source);
   auto target = prepared(p.target, false);
   auto source = prepared(p.source, false);
   if (!target || !source || cancelled()) return done();

@@ -224,9 +224,23 @@ void Registry::note_alignment_use(const std::string& robot, Clock::time_point no
   t = std::max(t, now);
 }
 
+Registry::AlignmentUse::AlignmentUse(Registry& registry, std::string robot)
+    : registry_(registry), robot_(std::move(robot)) {
+  std::lock_guard<std::mutex> lock(registry_.mutex_);
+  ++registry_.alignment_holds_[robot_];
+}
+
+Registry::AlignmentUse::~AlignmentUse() {
+  std::lock_guard<std::mutex> lock(registry_.mutex_);
+  if (--registry_.alignment_holds_[robot_] == 0) registry_.alignment_holds_.erase(robot_);
+  Clock::time_point& t = registry_.alignment_use_[robot_];
+  t = std::max(t, Clock::now());
+}
+
 bool Registry::alignment_data_idle_locked(const std::string& robot, const RobotRecord& rec,
                                           Clock::time_point cutoff) const {
   if (!rec.map || (!rec.prepared && !(rec.map->binary_body() && rec.map->has_tree()))) return false;
+  if (alignment_holds_.count(robot) != 0) return false;
   const auto used = alignment_use_.find(robot);
   return used == alignment_use_.end() || used->second < cutoff;
 }

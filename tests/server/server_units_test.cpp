@@ -906,6 +906,16 @@ TEST(Pipeline, AlignmentDataNoAlignmentUsesIsLetGoOfAndBuiltAgainWhenNeeded) {
   EXPECT_EQ(released, std::vector<std::string>{"r2"});
   EXPECT_TRUE(registry.get("r1")->prepared);
   EXPECT_FALSE(registry.get("r2")->prepared);
+  // Data an alignment is running on is kept however long ago it began (a search on a loaded
+  // machine outlasts the hold), and is idle only from the alignment's end.
+  const auto later = Registry::Clock::now() + std::chrono::hours(2);
+  {
+    const Registry::AlignmentUse running_on_r1(registry, "r1");
+    EXPECT_TRUE(registry.release_alignment_data(later).empty());
+    EXPECT_TRUE(registry.get("r1")->prepared);
+  }
+  EXPECT_EQ(registry.release_alignment_data(later), std::vector<std::string>{"r1"});
+  EXPECT_FALSE(registry.get("r1")->prepared);
 }
 
 TEST(GlobalMapBuilder, AGrownMapIsFusedByItsDifferenceAndEqualsAFreshBuild) {

@@ -89,6 +89,19 @@ class Registry {
   void mark_tried(const std::string& robot, std::uint64_t revision, const std::string& other);
   /// Notes that an alignment uses `robot`'s prepared map at `now`.
   void note_alignment_use(const std::string& robot, Clock::time_point now = Clock::now());
+  /// Holds a robot's alignment data while an alignment runs on it: never idle while held (an
+  /// alignment may run longer than merge.alignment_data_hold_s), idle time counts from its end.
+  class AlignmentUse {
+   public:
+    AlignmentUse(Registry& registry, std::string robot);
+    ~AlignmentUse();
+    AlignmentUse(const AlignmentUse&) = delete;
+    AlignmentUse& operator=(const AlignmentUse&) = delete;
+
+   private:
+    Registry& registry_;
+    std::string robot_;
+  };
   /// The robots holding a prepared map (or an octree built from their bytes) that no alignment
   /// used since `cutoff`.
   std::vector<std::string> idle_alignment_data(Clock::time_point cutoff) const;
@@ -148,6 +161,7 @@ class Registry {
   double conflict_hold_s_ = 30.0;
   std::map<std::string, Presence> presence_;
   std::map<std::string, Clock::time_point> alignment_use_;  ///< last use of a robot's prepared map
+  std::map<std::string, int> alignment_holds_;             ///< alignments running on a robot's data
   std::map<std::string, std::shared_ptr<RobotRecord>> records_;
   std::map<std::pair<std::string, std::string>, Edge> edges_;
   std::string reference_;
