@@ -72,12 +72,14 @@ void read_merge(const YAML::Node& n, MergeConfig& c) {
 
 void read_publish(const YAML::Node& n, PublishConfig& c) {
   check_keys(n, "publish",
-             {"min_interval_s", "republish_period_s", "status_period_s", "global_encoding", "move_nodes_per_build"});
+             {"min_interval_s", "republish_period_s", "status_period_s", "global_encoding", "move_nodes_per_build",
+              "move_step_leaves"});
   read(n, "min_interval_s", c.min_interval_s, "publish");
   read(n, "republish_period_s", c.republish_period_s, "publish");
   read(n, "status_period_s", c.status_period_s, "publish");
   read(n, "global_encoding", c.global_encoding, "publish");
   read(n, "move_nodes_per_build", c.move_nodes_per_build, "publish");
+  read(n, "move_step_leaves", c.move_step_leaves, "publish");
 }
 
 void read_store(const YAML::Node& n, StoreConfig& c) {

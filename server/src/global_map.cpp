@@ -138,7 +138,8 @@ std::optional<GlobalMapOut> GlobalMapBuilder::build(const Registry& registry, st
   for (const PlacedMap& m : maps) {  // freed by release_replaced(), after the map is out
     if (auto old = fusion_->map_of(m.robot); old && old != m.map) replaced_.push_back(std::move(old));
   }
-  const GlobalSync sync = sync_global(*fusion_, maps, refused_);
+  const GlobalSync sync = sync_global(*fusion_, maps, refused_, config_.publish.move_step_leaves);
+  deferred_ |= sync.moving > 0;  // the next build takes their next step
   for (const auto& [robot, reason] : sync.skipped) {
     spdlog::warn("robot {}: map left out of the global map: {}", robot, reason);
   }
@@ -158,7 +159,7 @@ std::optional<GlobalMapOut> GlobalMapBuilder::build(const Registry& registry, st
   g.hash = payload_hash(g.data);
   stages_ = Stages{std::chrono::duration<double>(t1 - t0).count(),
                    std::chrono::duration<double>(std::chrono::steady_clock::now() - t1).count(), sync.updated,
-                   sync.incremental, sync.from_bodies, sync.cubes, sync.diff_s, sync.place_s};
+                   sync.incremental, sync.from_bodies, sync.cubes, sync.diff_s, sync.place_s, sync.moving};
   const auto same = [](const Contribution& a, const Contribution& b) {
     return a.robot_id == b.robot_id && a.session_id == b.session_id && a.sequence == b.sequence;
   };

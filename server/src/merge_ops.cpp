@@ -85,7 +85,8 @@ bool moved_noticeably(const Eigen::Matrix4d& before, const Eigen::Matrix4d& afte
   return d.topRightCorner<3, 1>().norm() > translation || angle * 180.0 / M_PI > rotation_deg;
 }
 
-GlobalSync sync_global(GlobalFusion& fusion, const std::vector<PlacedMap>& maps, RefusedMaps& refused) {
+GlobalSync sync_global(GlobalFusion& fusion, const std::vector<PlacedMap>& maps, RefusedMaps& refused,
+                       std::size_t move_step) {
   GlobalSync out;
   for (const std::string& robot : fusion.robots()) {
     const bool listed = std::any_of(maps.begin(), maps.end(), [&](const PlacedMap& m) { return m.robot == robot; });
@@ -99,7 +100,8 @@ GlobalSync sync_global(GlobalFusion& fusion, const std::vector<PlacedMap>& maps,
     const auto r = refused.find(m.robot);
     if (r != refused.end() && r->second.first.lock() == m.map && r->second.second == m.T_global_robot) continue;
     try {
-      const GlobalFuseResult res = fusion.set(m.robot, m.map, m.T_global_robot, m.keep_pose_within);  // !ok: left out
+      const GlobalFuseResult res =
+          fusion.set(m.robot, m.map, m.T_global_robot, m.keep_pose_within, move_step);  // !ok: left out
       if (!res.ok) throw MapError(res.reason);
       refused.erase(m.robot);
       out.fused.push_back(m.robot);
@@ -109,6 +111,7 @@ GlobalSync sync_global(GlobalFusion& fusion, const std::vector<PlacedMap>& maps,
       out.cubes += res.cubes;
       out.diff_s += res.diff_s;
       out.place_s += res.place_s;
+      out.moving += res.moving ? 1 : 0;
     } catch (const std::exception& e) {
       fusion.remove(m.robot);
       refused[m.robot] = {m.map, m.T_global_robot};

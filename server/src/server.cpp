@@ -242,11 +242,12 @@ void Server::publish_global() {
   const auto st = builder_.last_stages();
   auto ms = [](Clock::duration d) { return std::chrono::duration<double, std::milli>(d).count(); };
   spdlog::info("global map {} published: {} robots ({} re-fused, {} by difference, {} of them on the payload bytes), "
-               "{} bytes{} in {:.0f} ms (fuse {:.0f}: diff {:.0f}, place {:.0f} for {} cubes; encode {:.0f}, poses {:.0f}, "
+               "{} bytes{}{} in {:.0f} ms (fuse {:.0f}: diff {:.0f}, place {:.0f} for {} cubes; encode {:.0f}, poses {:.0f}, "
                "store {:.0f}, publish {:.0f}); poses of {} robots{}{}",
                version_, last_global_->contributors.size(), st.updated, st.incremental, st.from_bodies,
                last_global_->data.size(),
                delta ? fmt::format(" (and {} changed blocks)", delta_blocks) : std::string(),
+               st.moving > 0 ? fmt::format(", {} robots moving in steps", st.moving) : std::string(),
                ms(t_published - t0), st.fuse_s * 1e3, st.diff_s * 1e3, st.place_s * 1e3, st.cubes, st.encode_s * 1e3,
                ms(t_built - t0) - (st.fuse_s + st.encode_s) * 1e3, ms(t_stored - t_built), ms(t_published - t_stored),
                poses.size(), unaligned.empty() ? "" : ", not aligned:", unaligned);

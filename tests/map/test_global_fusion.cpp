@@ -482,6 +482,84 @@ TEST_F(GlobalFusionTest, ASubVoxelPoseChangeOfAGrownMapKeepsTheFusedPoseALargerO
   EXPECT_TRUE(exact.encode().bt == fresh_encoding(shifted));
 }
 
+TEST_F(GlobalFusionTest, AMoveInStepsKeepsEveryLeafOnceAndEndsAsAFusionAtTheNewPose) {
+  // What the server does when the pose graph moves a fused robot whose map did not change: the
+  // move goes in steps of a few leaves, one a build. Whatever happens halfway (the last steps,
+  // another pose, a grown map, the robot taken out), the result must be byte for byte the fresh
+  // fusion of what was asked last: a leaf counted twice or not at all would show.
+  const double res = world_->getResolution();
+  const Robot r1 = cut(*world_, "r1", -20, -2, 0.0);
+  const Robot r2 = cut(*world_, "r2", -8, 6, 1.1);
+  const Robot grown = cut(*world_, "r2", -8, 12, 1.1);
+  const auto m1 = checked(*r1.map);
+  const auto m2 = checked(*r2.map);
+  const auto m2_grown = checked(*grown.map);
+  const Eigen::Matrix4d T1 = T_global(r1), T2 = T_global(r2);
+  const Eigen::Matrix4d moved = T2 * make_transform(0.3, -0.2, 0.05, 0.02, 0.0, 0.1).matrix();
+  const Eigen::Matrix4d again = T2 * make_transform(-0.1, 0.1, 0.0, 0.0, 0.01, -0.05).matrix();
+  const auto fresh = [&](std::shared_ptr<const HeldMap> second, const Eigen::Matrix4d& pose) {
+    GlobalFusion scratch(res);
+    EXPECT_TRUE(scratch.set("r1", m1, T1).ok);
+    if (second) EXPECT_TRUE(scratch.set("r2", second, pose).ok);
+    return scratch.encode().bt;
+  };
+  const std::size_t step = r2.map->getNumLeafNodes() / 4;
+  ASSERT_GT(step, 1000U);
+  const auto started = [&](GlobalFusion& g) {
+    EXPECT_TRUE(g.set("r1", m1, T1).ok);
+    EXPECT_TRUE(g.set("r2", m2, T2).ok);
+    const GlobalFuseResult r = g.set("r2", m2, moved, 0.0, step);
+    EXPECT_TRUE(r.ok && r.moving);
+    EXPECT_FALSE(r.incremental);
+    EXPECT_LE(r.cubes, 2 * step) << "a step takes out and puts in at most its leaves";
+  };
+
+  GlobalFusion g(res);
+  started(g);
+  const auto before = fresh(m2, T2), after = fresh(m2, moved);
+  int calls = 1;
+  while (g.moving("r2")) {
+    EXPECT_FALSE(g.holds("r2", m2.get(), moved));
+    EXPECT_TRUE(*g.pose_of("r2") == moved);
+    const auto halfway = g.encode().bt;
+    EXPECT_TRUE(halfway != before && halfway != after) << "after " << calls << " steps";
+    const GlobalFuseResult r = g.set("r2", m2, moved, 0.0, step);
+    ASSERT_TRUE(r.ok);
+    EXPECT_EQ(r.moving, g.moving("r2"));
+    ASSERT_LT(++calls, 50);
+  }
+  EXPECT_GE(calls, 4);
+  EXPECT_LE(calls, 8);
+  EXPECT_TRUE(g.holds("r2", m2.get(), moved));
+  EXPECT_TRUE(g.encode().bt == after) << "the last step does not end at a fusion at the new pose";
+  EXPECT_FALSE(m2->has_tree()) << "a move in steps reads the map's bytes";
+
+  // Halfway: another pose (the move ends at once, then the map moves whole), a grown map (the
+  // move ends, then its difference), the robot taken out, a move of one whole step.
+  GlobalFusion other_pose(res);
+  started(other_pose);
+  ASSERT_TRUE(other_pose.set("r2", m2, again).ok);
+  EXPECT_FALSE(other_pose.moving("r2"));
+  EXPECT_TRUE(other_pose.encode().bt == fresh(m2, again));
+  GlobalFusion grew(res);
+  started(grew);
+  const GlobalFuseResult g2 = grew.set("r2", m2_grown, moved, 0.0, step);
+  ASSERT_TRUE(g2.ok);
+  EXPECT_FALSE(g2.moving);
+  EXPECT_TRUE(g2.incremental);
+  EXPECT_TRUE(grew.encode().bt == fresh(m2_grown, moved));
+  GlobalFusion removed(res);
+  started(removed);
+  removed.remove("r2");
+  EXPECT_TRUE(removed.encode().bt == fresh(nullptr, T2));
+  GlobalFusion one_step(res);
+  ASSERT_TRUE(one_step.set("r1", m1, T1).ok);
+  ASSERT_TRUE(one_step.set("r2", m2, T2).ok);
+  const GlobalFuseResult whole = one_step.set("r2", m2, moved, 0.0, 100 * step);
+  EXPECT_TRUE(whole.ok && !whole.moving);
+  EXPECT_TRUE(one_step.encode().bt == after);
+}
+
 TEST_F(GlobalFusionTest, OneThreadOrSeveralGiveTheSameBytes) {
   // set() shares a map's cubes out over the global map's blocks, written on several threads.
   // After every step of the same changes (received as checked payloads, so fused off their

@@ -1106,6 +1106,51 @@ TEST(GlobalMapBuilder, MovedRobotsAreFusedAgainWithinTheBuildsNodeBudgetUntilAll
   }
 }
 
+TEST(GlobalMapBuilder, AMovedRobotGoesInStepsAndAnotherRobotsUpdateGoesOutInBetween) {
+  // The pose graph moves r2 (its map unchanged): the move goes a few leaves a build, every
+  // build's map whole, and r1's update, received meanwhile, goes out in the next build, not
+  // after the whole move. The last build equals a fresh one.
+  const auto world = test::load_data_map("geb079.bt");
+  const Eigen::Matrix4d T2 = mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155);
+  const Eigen::Matrix4d shift = mapmerge::paper_transform(0.3, 0, 0, 0, 0, 2);
+  const auto r2 = test::cut_robot_map(*world, "r2", box(4, 24), T2);
+  ServerConfig config;
+  config.publish.move_step_leaves = r2.tree->getNumLeafNodes() / 5;
+  ASSERT_GT(config.publish.move_step_leaves, 1000u);
+  Registry registry;
+  registry.claim_reference("r1");
+  registry.put_map(received_record_of(test::cut_robot_map(*world, "r1", box(-8, 10), Eigen::Matrix4d::Identity()), 1));
+  registry.put_map(received_record_of(r2, 1));
+  registry.put_edge(Edge{"r1", "r2", T2.inverse(), 0.02});
+  GlobalMapBuilder builder(config);
+  ASSERT_TRUE(builder.build(registry, 1));
+  registry.put_edge(Edge{"r1", "r2", shift * T2.inverse(), 0.02});
+  std::uint64_t version = 2;
+  ASSERT_TRUE(builder.build(registry, version));
+  EXPECT_EQ(builder.last_stages().moving, 1u);
+  EXPECT_TRUE(builder.deferred()) << "the move's next steps are due";
+  registry.put_map(received_record_of(test::cut_robot_map(*world, "r1", box(-8, 14), Eigen::Matrix4d::Identity()), 2));
+  const auto with_update = builder.build(registry, ++version);
+  ASSERT_TRUE(with_update);
+  EXPECT_EQ(builder.last_stages().incremental, 1u) << "r1's update by its difference";
+  EXPECT_EQ(builder.last_stages().moving, 1u) << "r2 still halfway";
+  const auto r1_in = std::find_if(with_update->contributors.begin(), with_update->contributors.end(),
+                                  [](const Contribution& c) { return c.robot_id == "r1"; });
+  ASSERT_NE(r1_in, with_update->contributors.end());
+  EXPECT_EQ(r1_in->sequence, 2u) << "r1's update waited for r2's move";
+  std::optional<GlobalMapOut> last = with_update;
+  while (builder.deferred() && version < 20) {
+    last = builder.build(registry, ++version);
+    ASSERT_TRUE(last);
+  }
+  EXPECT_FALSE(builder.deferred());
+  EXPECT_EQ(builder.last_stages().moving, 0u);
+  EXPECT_GE(version, 5u) << "the move took a single step";
+  const auto expected = GlobalMapBuilder(config).build(registry, 99);
+  ASSERT_TRUE(expected);
+  EXPECT_TRUE(last->data == expected->data) << "after the move in steps, the map differs from a fresh build";
+}
+
 TEST(ExportGlobal, WritesTheLastGlobalMapAndWhichRobotContributedEachVoxel) {
   const auto world = test::load_data_map("geb079.bt");
   const Eigen::Matrix4d T2 = mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155);

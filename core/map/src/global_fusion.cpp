@@ -483,7 +483,12 @@ std::vector<std::string> GlobalFusion::robots() const {
 bool GlobalFusion::holds(const std::string& robot, const HeldMap* map,
                          const Eigen::Matrix4d& T) const {
   const auto it = robots_.find(robot);
-  return it != robots_.end() && it->second.map.get() == map && it->second.T_global_robot == T;
+  return it != robots_.end() && it->second.map.get() == map && it->second.T_global_robot == T && !it->second.T_to;
+}
+
+bool GlobalFusion::moving(const std::string& robot) const {
+  const auto it = robots_.find(robot);
+  return it != robots_.end() && it->second.T_to.has_value();
 }
 
 bool GlobalFusion::fuses_by_difference(const std::string& robot, const HeldMap& map) const {
@@ -498,7 +503,7 @@ bool GlobalFusion::same_grid(const Entry& fused, const HeldMap& map) const {
 std::optional<Eigen::Matrix4d> GlobalFusion::pose_of(const std::string& robot) const {
   const auto it = robots_.find(robot);
   if (it == robots_.end()) return std::nullopt;
-  return it->second.T_global_robot;
+  return it->second.T_to ? *it->second.T_to : it->second.T_global_robot;
 }
 
 std::shared_ptr<const HeldMap> GlobalFusion::map_of(const std::string& robot) const {
@@ -514,8 +519,59 @@ std::optional<Eigen::AlignedBox3d> GlobalFusion::extent_of(const std::string& ro
 
 std::size_t GlobalFusion::memory_usage() const { return sums_->memoryUsage(); }
 
+std::size_t GlobalFusion::add_leaves(const HeldMap& map, std::size_t first, std::size_t last,
+                                     std::initializer_list<Placement> at, GlobalFuseResult& stats) {
+  FuseResult counts;
+  double work = 0.0;
+  constexpr std::size_t kRun = std::size_t{1} << 16;
+  std::vector<ChangedCube> run, negated;
+  const auto flush = [&] {
+    for (const Placement& p : at) {
+      if (p.sign > 0) {
+        map_cubes(*sums_, *p.T, resolution_, run, threads_, counts);
+        continue;
+      }
+      negated = run;
+      for (ChangedCube& c : negated) c.delta = -c.delta;
+      map_cubes(*sums_, *p.T, resolution_, negated, threads_, counts);
+    }
+    run.clear();
+  };
+  std::size_t index = 0;
+  const auto add = [&](const ChangedCube& cube) {
+    const std::size_t i = index++;
+    if (i < first || i >= last) return;
+    ++stats.cubes;
+    run.push_back(cube);
+    if (run.size() >= kRun) flush();
+  };
+  if (!whole_body(map, false, resolution_, config_, add, work, true)) {
+    throw MapError("GlobalFusion: a map moved in steps has no checked body");  // set() checked it
+  }
+  flush();
+  stats.voxel_updates += counts.voxel_updates;
+  stats.block_updates += counts.block_updates;
+  return index;
+}
+
+void GlobalFusion::move_step(Entry& entry, std::size_t step, GlobalFuseResult& stats) {
+  const std::size_t end = step > SIZE_MAX - entry.moved ? SIZE_MAX : entry.moved + step;
+  const std::size_t leaves =
+      add_leaves(*entry.map, entry.moved, end, {{&entry.T_global_robot, -1}, {&*entry.T_to, +1}}, stats);
+  entry.moved = std::min(end, leaves);
+  if (entry.moved < leaves) return;
+  entry.T_global_robot = *entry.T_to;
+  entry.T_to.reset();
+  entry.moved = 0;
+}
+
 void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stats, bool body_checked,
                             Eigen::AlignedBox3d* extent) {
+  if (entry.T_to) {  // halfway through a move in steps: each part at its pose
+    add_leaves(*entry.map, 0, entry.moved, {{&*entry.T_to, sign}}, stats);
+    add_leaves(*entry.map, entry.moved, SIZE_MAX, {{&entry.T_global_robot, sign}}, stats);
+    return;
+  }
   const Eigen::Matrix4d& T = entry.T_global_robot;
   FuseResult counts;
   double work = 0.0;
@@ -618,15 +674,29 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
 }
 
 GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<const HeldMap> map,
-                                   const Eigen::Matrix4d& T_global_robot, double keep_pose_within) {
+                                   const Eigen::Matrix4d& T_global_robot, double keep_pose_within,
+                                   std::size_t move_step) {
   GlobalFuseResult r;
   r.reason = map ? detail::check_rigid(T_global_robot, config_.rigid_tolerance) : "no map";
   if (!r.reason.empty()) {
     remove(robot);
     return r;
   }
-  Entry next{std::move(map), T_global_robot, Eigen::AlignedBox3d()};
+  Entry next{std::move(map), T_global_robot, Eigen::AlignedBox3d(), std::nullopt, 0};
   const auto it = robots_.find(robot);
+  if (it != robots_.end() && it->second.T_to) {
+    // A move in steps under way: its next step, or (another map or pose) its end at once.
+    Entry& fused = it->second;
+    const bool go_on = fused.map == next.map && *fused.T_to == T_global_robot && move_step > 0;
+    const auto t0 = std::chrono::steady_clock::now();
+    this->move_step(fused, go_on ? move_step : SIZE_MAX, r);
+    r.place_s += seconds_since(t0);
+    if (fused.T_to || (fused.map == next.map && fused.T_global_robot == T_global_robot)) {
+      r.ok = true;
+      r.moving = fused.T_to.has_value();
+      return r;
+    }
+  }
   if (it != robots_.end() && it->second.map == next.map && it->second.T_global_robot == T_global_robot) {
     r.ok = true;
     return r;
@@ -650,6 +720,15 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
     if (!r.ok) {
       r.reason = "map would cost ~" + std::to_string(static_cast<long long>(work)) +
                  " voxel visits, more than max_work (huge pruned leaves?)";
+    } else if (move_step > 0 && body && it != robots_.end() && it->second.map == next.map) {
+      // The same map at a new pose: moved in steps, this call the first.
+      const auto t1 = std::chrono::steady_clock::now();
+      it->second.T_to = T_global_robot;
+      it->second.moved = 0;
+      this->move_step(it->second, move_step, r);
+      r.place_s += seconds_since(t1);
+      r.moving = it->second.T_to.has_value();
+      return r;
     } else {
       const auto t1 = std::chrono::steady_clock::now();
       if (it != robots_.end()) add_full(it->second, -1, r);

@@ -324,7 +324,8 @@ Provenance GlobalFusion::provenance() const {
   std::vector<std::shared_ptr<const octomap::OcTree>> trees;  // built here if not yet
   for (const auto& [robot, entry] : robots_) {
     trees.push_back(entry.map->tree());
-    maps.push_back(NamedMap{robot, trees.back().get(), entry.T_global_robot});
+    // (a robot moving in steps is named at its new pose)
+    maps.push_back(NamedMap{robot, trees.back().get(), entry.T_to ? *entry.T_to : entry.T_global_robot});
   }
   return provenance_of(maps, resolution_);
 }

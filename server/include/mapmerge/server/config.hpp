@@ -69,6 +69,12 @@ struct PublishConfig {
                                                ///< fusion on 2 cores), at least one; the others keep
                                                ///< their fused pose until the next builds, so updates
                                                ///< are published in between [count; 0: all at once]
+  std::size_t move_step_leaves = 100000;       ///< a robot moved to a new pose (its map unchanged)
+                                               ///< moves this many of its leaves a build (~60 ms of
+                                               ///< fusion on 2 cores), so the updates of the others
+                                               ///< are not held back by a large map's move; each
+                                               ///< build's map is whole, part of the robot at its
+                                               ///< old pose [count; 0: a move in one build]
 };
 
 /// Where and how the registry persists (read by Store).

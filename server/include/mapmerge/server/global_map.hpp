@@ -49,6 +49,7 @@ class GlobalMapBuilder {
     std::size_t from_bodies = 0;  ///< ... of which read off the payloads' bytes (no tree walk)
     std::size_t cubes = 0;        ///< changed leaf regions placed (GlobalSync::cubes)
     double diff_s = 0.0, place_s = 0.0;  ///< parts of fuse_s: finding the change, placing it
+    std::size_t moving = 0;              ///< robots halfway through a move in steps
   };
   Stages last_stages() const { return stages_; }
   /// Frees the maps the last build replaced in the fusion. build() keeps them: freeing a

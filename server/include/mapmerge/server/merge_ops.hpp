@@ -71,6 +71,7 @@ struct GlobalSync {
   std::size_t from_bodies = 0;       ///< ... of which diffed on the maps' binary bodies
   std::size_t cubes = 0;             ///< changed leaf regions placed on the global grid
   double diff_s = 0.0, place_s = 0.0;  ///< GlobalFuseResult's, summed over the robots
+  std::size_t moving = 0;            ///< robots whose move in steps is not finished
 };
 
 /// Robot -> the map and pose a fusion refused: not tried again until either changes.
@@ -80,6 +81,8 @@ using RefusedMaps = std::map<std::string, std::pair<std::weak_ptr<const HeldMap>
 /// changed is updated (only the difference of its map when the pose is the same). A map that core
 /// refuses (non-rigid pose, fusion work above the fusion's max_work, any exception) is left out
 /// with its reason (and remembered in `refused`); the others are fused regardless.
-GlobalSync sync_global(GlobalFusion& fusion, const std::vector<PlacedMap>& maps, RefusedMaps& refused);
+/// `move_step`: GlobalFusion::set()'s (a robot's move to a new pose, this many leaves a call).
+GlobalSync sync_global(GlobalFusion& fusion, const std::vector<PlacedMap>& maps, RefusedMaps& refused,
+                       std::size_t move_step = 0);
 
 }  // namespace mapmerge::server

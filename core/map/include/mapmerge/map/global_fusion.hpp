@@ -14,6 +14,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <initializer_list>
 #include <map>
 #include <memory>
 #include <optional>
@@ -63,6 +64,9 @@ struct GlobalFuseResult {
   /// The map was fused by difference at the robot's fused pose, not at the one asked for, which
   /// moves none of its voxels by keep_pose_within or more (pose_of() says which pose is fused).
   bool kept_pose = false;
+  /// A move in steps (set()'s `move_step`) is under way: part of the map is fused at its new pose
+  /// and the rest still at its old one. set() with the same map and pose continues it.
+  bool moving = false;
 };
 
 /// The fleet's global map, kept up to date one robot at a time. Not thread-safe: one owner.
@@ -88,8 +92,16 @@ class GlobalFusion {
   /// difference's cubes) keep_pose_within or more apart, the new map is fused by its difference
   /// at T0 (GlobalFuseResult::kept_pose): a refinement's sub-voxel correction costs no whole
   /// re-fusion. The difference is found before the test; a larger move fuses the map whole.
+  ///
+  /// `move_step` (> 0): the same map at a new pose moves in steps of at most this many leaves
+  /// (its body's depth-first order): each call takes the next leaves out at the old pose and puts
+  /// them in at the new one (GlobalFuseResult::moving until the last). In between, every leaf of
+  /// the map counts once, at one of the two poses, so each step leaves a whole global map, and a
+  /// move of a large map does not hold back the updates of the others. A call with another map or
+  /// pose first finishes the move at once. Maps without a checked body move whole.
   GlobalFuseResult set(const std::string& robot, std::shared_ptr<const HeldMap> map,
-                       const Eigen::Matrix4d& T_global_robot, double keep_pose_within = 0.0);
+                       const Eigen::Matrix4d& T_global_robot, double keep_pose_within = 0.0,
+                       std::size_t move_step = 0);
   /// The same for a decoded map; `binary_body`: the validated body it was decoded from
   /// (DecodeResult::binary_body), or null.
   GlobalFuseResult set(const std::string& robot, std::shared_ptr<const octomap::OcTree> map,
@@ -102,12 +114,15 @@ class GlobalFusion {
   /// Takes `robot`'s contribution out (no-op for a robot not fused).
   void remove(const std::string& robot);
 
-  /// Whether `robot` is fused with exactly this map and pose (nothing to do for set()).
+  /// Whether `robot` is fused with exactly this map and pose (nothing to do for set()); false
+  /// while it moves in steps.
   bool holds(const std::string& robot, const HeldMap* map, const Eigen::Matrix4d& T) const;
+  /// Whether `robot`'s move in steps is under way.
+  bool moving(const std::string& robot) const;
   /// Whether set() can replace `robot`'s fused map by `map`'s difference (at the fused pose):
   /// the robot is fused with a map of `map`'s resolution, not finer than the global grid.
   bool fuses_by_difference(const std::string& robot, const HeldMap& map) const;
-  /// The pose `robot` is fused with (nullopt for a robot not fused).
+  /// The pose `robot` is fused with, or is moving to in steps (nullopt for a robot not fused).
   std::optional<Eigen::Matrix4d> pose_of(const std::string& robot) const;
   /// The map `robot` is fused with (null for a robot not fused).
   std::shared_ptr<const HeldMap> map_of(const std::string& robot) const;
@@ -154,7 +169,22 @@ class GlobalFusion {
     std::shared_ptr<const HeldMap> map;
     Eigen::Matrix4d T_global_robot;
     Eigen::AlignedBox3d extent;  ///< extent_of()
+    /// A move in steps: the first `moved` leaves of the map's body walk are fused at T_to, the
+    /// others still at T_global_robot.
+    std::optional<Eigen::Matrix4d> T_to;
+    std::size_t moved = 0;
   };
+  /// A pose and the sign its evidence goes in with.
+  struct Placement {
+    const Eigen::Matrix4d* T;
+    int sign;
+  };
+  /// Places the leaves [first, last) of `map`'s body walk at each of `at`; returns the number of
+  /// leaves the walk gave (the whole map's). The map must have a body whole_body() takes.
+  std::size_t add_leaves(const HeldMap& map, std::size_t first, std::size_t last,
+                         std::initializer_list<Placement> at, GlobalFuseResult& stats);
+  /// The next `step` leaves of a moving entry to their new pose; ends the move after the last.
+  void move_step(Entry& entry, std::size_t step, GlobalFuseResult& stats);
   /// fuses_by_difference() for the robot's entry.
   bool same_grid(const Entry& fused, const HeldMap& map) const;
   /// `body_checked`: the entry's binary body was just scanned whole (as in set()): not again.
