@@ -65,11 +65,40 @@ bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Con
   bool grown = false;  // a map to fuse by its difference (cheap)
   std::vector<std::size_t> moves, moved;  // maps to fuse whole (costly): new robots, then new poses
   bool any_fused = false;
+  bool later = false;  // a robot's content goes out now, its move in the next builds
+  std::vector<std::size_t> stepping;  // robots moving in steps
+  const bool steps = config_.publish.move_step_leaves > 0;
+  const auto fused_contribution = [&](std::size_t i) {
+    const auto c = fused_contributions_.find(maps[i].robot);
+    if (c != fused_contributions_.end()) contributors[i] = c->second;
+  };
   for (std::size_t i = 0; i < maps.size(); ++i) {
-    const PlacedMap& m = maps[i];
+    PlacedMap& m = maps[i];
     const auto fused = fusion_->pose_of(m.robot);
     any_fused |= fused.has_value();
     if (fusion_->holds(m.robot, m.map.get(), m.T_global_robot)) continue;
+    if (fusion_->moving(m.robot)) {
+      // Halfway through a move in steps: its next step, to the pose it is moving to. A new map or
+      // pose waits for the move's end (finishing the move at once would hold everyone's updates).
+      later |= m.T_global_robot != *fused || m.map != fusion_->map_of(m.robot);  // held: a build after
+      m.T_global_robot = *fused;
+      m.keep_pose_within = 0.0;
+      if (m.map != fusion_->map_of(m.robot)) {
+        m.map = fusion_->map_of(m.robot);
+        fused_contribution(i);
+      }
+      stepping.push_back(i);
+      continue;
+    }
+    if (steps && fused && fusion_->map_of(m.robot) != m.map && fusion_->fuses_by_difference(m.robot, *m.map) &&
+        !(*fused == m.T_global_robot || m.keep_pose_within > 0.0)) {
+      // A moved robot with a new map: its content now, by difference at the fused pose; its move
+      // (the same map, so in steps) from the next build on.
+      m.T_global_robot = *fused;
+      later = grown = true;
+      moves_held_ = true;  // held back once: the next build moves it, grown maps or not
+      continue;
+    }
     if (fused && (*fused == m.T_global_robot || m.keep_pose_within > 0.0)) {
       grown = true;  // (a kept pose that set() finds too far after all is moved in this build)
     } else {
@@ -80,8 +109,15 @@ bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Con
       (fused ? moved : moves).push_back(i);
     }
   }
+  // Grown maps go out alone, without the steps of a move (~0.1 s each), but only every other
+  // build: a stream of updates never holds a move back for good.
+  if (!stepping.empty()) {
+    const bool hold = grown && !step_held_;
+    for (const std::size_t i : stepping) maps[i].hold_step = hold;
+    step_held_ = hold;
+  }
   moves.insert(moves.end(), moved.begin(), moved.end());
-  if (moves.empty() || !any_fused) return false;  // a first fusion is built whole
+  if (moves.empty() || !any_fused) return later;  // a first fusion is built whole
   // Grown maps go out first, alone (a known robot's update is on the fleet's latency path), but
   // only every other build: a stream of updates never holds moves back for good.
   const bool moves_now = !grown || std::exchange(moves_held_, false);
@@ -98,7 +134,7 @@ bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Con
     }
   }
   moves_held_ = taken == 0;
-  if (taken == moves.size()) return false;
+  if (taken == moves.size()) return later;
   for (std::size_t i = maps.size(); i-- > 0;) {
     if (keep[i]) continue;
     const auto fused = fusion_->pose_of(maps[i].robot);
@@ -106,8 +142,7 @@ bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Con
       maps[i].T_global_robot = *fused;
       if (!fusion_->fuses_by_difference(maps[i].robot, *maps[i].map)) {
         maps[i].map = fusion_->map_of(maps[i].robot);
-        const auto c = fused_contributions_.find(maps[i].robot);
-        if (c != fused_contributions_.end()) contributors[i] = c->second;
+        fused_contribution(i);
       }
     } else {  // not yet in the global map: a next build fuses it
       maps.erase(maps.begin() + static_cast<std::ptrdiff_t>(i));

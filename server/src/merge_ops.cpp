@@ -93,6 +93,11 @@ GlobalSync sync_global(GlobalFusion& fusion, const std::vector<PlacedMap>& maps,
     if (!listed) fusion.remove(robot);
   }
   for (const PlacedMap& m : maps) {
+    if (m.hold_step && fusion.moving(m.robot)) {
+      out.fused.push_back(m.robot);
+      ++out.moving;
+      continue;
+    }
     if (fusion.holds(m.robot, m.map.get(), m.T_global_robot)) {
       out.fused.push_back(m.robot);
       continue;

@@ -552,6 +552,18 @@ TEST_F(GlobalFusionTest, AMoveInStepsKeepsEveryLeafOnceAndEndsAsAFusionAtTheNewP
   started(removed);
   removed.remove("r2");
   EXPECT_TRUE(removed.encode().bt == fresh(nullptr, T2));
+  // A grown map whose pose moved too far to keep (the server's keep_pose_within): its difference
+  // at the fused pose first, in the same call the move's first step, then the steps.
+  GlobalFusion both(res);
+  ASSERT_TRUE(both.set("r1", m1, T1).ok);
+  ASSERT_TRUE(both.set("r2", m2, T2).ok);
+  const GlobalFuseResult b = both.set("r2", m2_grown, moved, 0.5 * res, step);
+  EXPECT_TRUE(b.ok && b.incremental && b.kept_pose && b.moving);
+  for (int n = 1; both.moving("r2"); ++n) {
+    ASSERT_TRUE(both.set("r2", m2_grown, moved, 0.5 * res, step).ok);
+    ASSERT_LT(n, 50);
+  }
+  EXPECT_TRUE(both.encode().bt == fresh(m2_grown, moved));
   GlobalFusion one_step(res);
   ASSERT_TRUE(one_step.set("r1", m1, T1).ok);
   ASSERT_TRUE(one_step.set("r2", m2, T2).ok);

@@ -1149,6 +1149,41 @@ TEST(GlobalMapBuilder, AMovedRobotGoesInStepsAndAnotherRobotsUpdateGoesOutInBetw
   const auto expected = GlobalMapBuilder(config).build(registry, 99);
   ASSERT_TRUE(expected);
   EXPECT_TRUE(last->data == expected->data) << "after the move in steps, the map differs from a fresh build";
+
+  // r2 grows and is moved at once: its content goes out first (at the fused pose), then the move
+  // in steps; a map r2 sends halfway waits for the move's end (r2's own update, not the fleet's).
+  const auto sequence_of = [](const GlobalMapOut& g, const std::string& id) {
+    for (const Contribution& c : g.contributors) {
+      if (c.robot_id == id) return c.sequence;
+    }
+    return std::uint64_t{0};
+  };
+  registry.put_map(received_record_of(test::cut_robot_map(*world, "r2", box(4, 28), T2), 2));
+  registry.put_edge(Edge{"r1", "r2", shift.inverse() * T2.inverse(), 0.02});
+  const auto content = builder.build(registry, ++version);
+  ASSERT_TRUE(content);
+  EXPECT_EQ(sequence_of(*content, "r2"), 2u);
+  EXPECT_EQ(builder.last_stages().incremental, 1u);
+  EXPECT_EQ(builder.last_stages().moving, 0u) << "the move started with the new map";
+  EXPECT_TRUE(builder.deferred());
+  ASSERT_TRUE(builder.build(registry, ++version));
+  EXPECT_EQ(builder.last_stages().moving, 1u);
+  registry.put_map(received_record_of(test::cut_robot_map(*world, "r2", box(4, 31), T2), 3));
+  const auto halfway = builder.build(registry, ++version);
+  ASSERT_TRUE(halfway);
+  EXPECT_EQ(sequence_of(*halfway, "r2"), 2u);
+  EXPECT_EQ(builder.last_stages().moving, 1u);
+  last = halfway;
+  const std::uint64_t stop = version + 20;
+  while (builder.deferred() && version < stop) {
+    last = builder.build(registry, ++version);
+    ASSERT_TRUE(last);
+  }
+  EXPECT_FALSE(builder.deferred());
+  EXPECT_EQ(sequence_of(*last, "r2"), 3u);
+  const auto expected_again = GlobalMapBuilder(config).build(registry, 99);
+  ASSERT_TRUE(expected_again);
+  EXPECT_TRUE(last->data == expected_again->data) << "after the second move, the map differs from a fresh build";
 }
 
 TEST(ExportGlobal, WritesTheLastGlobalMapAndWhichRobotContributedEachVoxel) {

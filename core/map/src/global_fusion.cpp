@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstring>
 #include <functional>
+#include <limits>
 #include <mutex>
 #include <unordered_map>
 
@@ -704,7 +705,22 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
   const bool by_difference = it != robots_.end() &&
                              (it->second.T_global_robot == T_global_robot || keep_pose_within > 0.0) &&
                              same_grid(it->second, *next.map);
-  const Difference diff = by_difference ? add_difference(it->second, next, keep_pose_within, r) : Difference::kTooFar;
+  Difference diff = by_difference ? add_difference(it->second, next, keep_pose_within, r) : Difference::kTooFar;
+  if (diff == Difference::kTooFar && by_difference && move_step > 0 && r.from_bodies) {
+    // A new map whose pose moved too far to keep: its difference at the fused pose first (its
+    // content goes out now), then the move in steps.
+    diff = add_difference(it->second, next, std::numeric_limits<double>::infinity(), r);
+    if (diff == Difference::kPlaced) {
+      const auto t1 = std::chrono::steady_clock::now();
+      next.T_to = T_global_robot;
+      it->second = std::move(next);
+      this->move_step(it->second, move_step, r);
+      r.place_s += seconds_since(t1);
+      r.ok = r.incremental = true;
+      r.moving = it->second.T_to.has_value();
+      return r;
+    }
+  }
   if (diff != Difference::kTooFar) {
     r.ok = diff == Difference::kPlaced;
     r.incremental = r.ok;

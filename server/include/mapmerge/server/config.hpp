@@ -69,7 +69,7 @@ struct PublishConfig {
                                                ///< fusion on 2 cores), at least one; the others keep
                                                ///< their fused pose until the next builds, so updates
                                                ///< are published in between [count; 0: all at once]
-  std::size_t move_step_leaves = 100000;       ///< a robot moved to a new pose (its map unchanged)
+  std::size_t move_step_leaves = 50000;        ///< a robot moved to a new pose (its map unchanged)
                                                ///< moves this many of its leaves a build (~60 ms of
                                                ///< fusion on 2 cores), so the updates of the others
                                                ///< are not held back by a large map's move; each

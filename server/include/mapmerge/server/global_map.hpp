@@ -73,7 +73,8 @@ class GlobalMapBuilder {
   RefusedMaps refused_;
   std::map<std::string, Contribution> fused_contributions_;  ///< per robot: the map version fused
   bool deferred_ = false;
-  bool moves_held_ = false;  ///< the last build fused no move, to publish grown maps first
+  bool moves_held_ = false;
+  bool step_held_ = false;   ///< the last build took no step of a move in steps, to publish grown maps first  ///< the last build fused no move, to publish grown maps first
   bool unchanged_ = false;
   std::vector<Contribution> last_contributors_;  ///< of the last version built
   Stages stages_;

@@ -56,6 +56,8 @@ struct PlacedMap {
   /// GlobalFusion::set's keep_pose_within [m]: a fused robot whose map changed is fused at its
   /// fused pose when no leaf of the map lands this far from where T_global_robot puts it.
   double keep_pose_within = 0.0;
+  /// A robot moving in steps (GlobalFusion::moving) takes no step in this sync: it stays as it is.
+  bool hold_step = false;
 };
 
 /// Whether `after` is more than `translation` [m] or `rotation_deg` [deg] away from `before`.

@@ -98,7 +98,9 @@ class GlobalFusion {
   /// them in at the new one (GlobalFuseResult::moving until the last). In between, every leaf of
   /// the map counts once, at one of the two poses, so each step leaves a whole global map, and a
   /// move of a large map does not hold back the updates of the others. A call with another map or
-  /// pose first finishes the move at once. Maps without a checked body move whole.
+  /// pose first finishes the move at once. Maps without a checked body move whole. A new map of
+  /// the same grid whose pose moved too far to keep goes in by its difference at the fused pose
+  /// (kept_pose), then moves in steps from the same call on.
   GlobalFuseResult set(const std::string& robot, std::shared_ptr<const HeldMap> map,
                        const Eigen::Matrix4d& T_global_robot, double keep_pose_within = 0.0,
                        std::size_t move_step = 0);
