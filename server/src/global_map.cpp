@@ -77,35 +77,32 @@ bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Con
     const auto fused = fusion_->pose_of(m.robot);
     any_fused |= fused.has_value();
     if (fusion_->holds(m.robot, m.map.get(), m.T_global_robot)) continue;
+    const auto fused_map = fusion_->map_of(m.robot);
     if (fusion_->moving(m.robot)) {
       // Halfway through a move in steps: its next step, to the pose it is moving to. A new map or
       // pose waits for the move's end (finishing the move at once would hold everyone's updates).
-      later |= m.T_global_robot != *fused || m.map != fusion_->map_of(m.robot);  // held: a build after
+      later |= m.T_global_robot != *fused || m.map != fused_map;  // held: a build after
       m.T_global_robot = *fused;
       m.keep_pose_within = 0.0;
-      if (m.map != fusion_->map_of(m.robot)) {
-        m.map = fusion_->map_of(m.robot);
+      if (m.map != fused_map) {
+        m.map = fused_map;
         fused_contribution(i);
       }
       stepping.push_back(i);
       continue;
     }
-    if (steps && fused && fusion_->map_of(m.robot) != m.map && fusion_->fuses_by_difference(m.robot, *m.map) &&
-        !(*fused == m.T_global_robot || m.keep_pose_within > 0.0)) {
-      // A moved robot with a new map: its content now, by difference at the fused pose; its move
-      // (the same map, so in steps) from the next build on.
+    // A moved robot with a new map its difference can fuse: its content can go out first.
+    const bool new_content = fused && fused_map != m.map && fusion_->fuses_by_difference(m.robot, *m.map);
+    if (fused && (*fused == m.T_global_robot || m.keep_pose_within > 0.0)) {
+      grown = true;  // (a kept pose that set() finds too far after all is moved in this build)
+    } else if (steps && new_content) {
+      // Its content now, by difference at the fused pose; its move (the same map, so in steps)
+      // from the next build on.
       m.T_global_robot = *fused;
       later = grown = true;
       moves_held_ = true;  // held back once: the next build moves it, grown maps or not
-      continue;
-    }
-    if (fused && (*fused == m.T_global_robot || m.keep_pose_within > 0.0)) {
-      grown = true;  // (a kept pose that set() finds too far after all is moved in this build)
     } else {
-      // A moved robot with a new map its difference can fuse: its content can go out first.
-      if (fused && fusion_->map_of(m.robot) != m.map && fusion_->fuses_by_difference(m.robot, *m.map)) {
-        grown = true;
-      }
+      grown |= new_content;
       (fused ? moved : moves).push_back(i);
     }
   }

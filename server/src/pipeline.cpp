@@ -202,7 +202,6 @@ void Pipeline::release_turn() {
 std::shared_ptr<const align::PreparedMap> Pipeline::prepared(const std::string& robot, bool features) {
   const auto rec = registry_.get(robot);
   if (!rec || !rec->map) return nullptr;
-  registry_.note_alignment_use(robot);
   if (rec->prepared && (!features || rec->prepared->has_features())) return rec->prepared;
   std::string error;
   const auto t0 = std::chrono::steady_clock::now();
@@ -215,7 +214,6 @@ std::shared_ptr<const align::PreparedMap> Pipeline::prepared(const std::string& 
     return nullptr;
   }
   registry_.set_prepared(robot, rec->map_revision, p);
-  registry_.note_alignment_use(robot);  // a long preparation: held from its end on
   return p;
 }
 

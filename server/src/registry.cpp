@@ -231,10 +231,9 @@ Registry::AlignmentUse::AlignmentUse(Registry& registry, std::string robot)
 }
 
 Registry::AlignmentUse::~AlignmentUse() {
+  registry_.note_alignment_use(robot_);  // before the hold ends: never idle in between
   std::lock_guard<std::mutex> lock(registry_.mutex_);
   if (--registry_.alignment_holds_[robot_] == 0) registry_.alignment_holds_.erase(robot_);
-  Clock::time_point& t = registry_.alignment_use_[robot_];
-  t = std::max(t, Clock::now());
 }
 
 bool Registry::alignment_data_idle_locked(const std::string& robot, const RobotRecord& rec,

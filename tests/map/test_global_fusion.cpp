@@ -500,7 +500,9 @@ TEST_F(GlobalFusionTest, AMoveInStepsKeepsEveryLeafOnceAndEndsAsAFusionAtTheNewP
   const auto fresh = [&](std::shared_ptr<const HeldMap> second, const Eigen::Matrix4d& pose) {
     GlobalFusion scratch(res);
     EXPECT_TRUE(scratch.set("r1", m1, T1).ok);
-    if (second) EXPECT_TRUE(scratch.set("r2", second, pose).ok);
+    if (second) {
+      EXPECT_TRUE(scratch.set("r2", second, pose).ok);
+    }
     return scratch.encode().bt;
   };
   const std::size_t step = r2.map->getNumLeafNodes() / 4;

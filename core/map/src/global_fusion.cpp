@@ -504,7 +504,7 @@ bool GlobalFusion::same_grid(const Entry& fused, const HeldMap& map) const {
 std::optional<Eigen::Matrix4d> GlobalFusion::pose_of(const std::string& robot) const {
   const auto it = robots_.find(robot);
   if (it == robots_.end()) return std::nullopt;
-  return it->second.T_to ? *it->second.T_to : it->second.T_global_robot;
+  return it->second.pose();
 }
 
 std::shared_ptr<const HeldMap> GlobalFusion::map_of(const std::string& robot) const {
@@ -556,14 +556,18 @@ std::size_t GlobalFusion::add_leaves(const HeldMap& map, std::size_t first, std:
 }
 
 void GlobalFusion::move_step(Entry& entry, std::size_t step, GlobalFuseResult& stats) {
+  const auto t0 = std::chrono::steady_clock::now();
   const std::size_t end = step > SIZE_MAX - entry.moved ? SIZE_MAX : entry.moved + step;
   const std::size_t leaves =
       add_leaves(*entry.map, entry.moved, end, {{&entry.T_global_robot, -1}, {&*entry.T_to, +1}}, stats);
   entry.moved = std::min(end, leaves);
-  if (entry.moved < leaves) return;
-  entry.T_global_robot = *entry.T_to;
-  entry.T_to.reset();
-  entry.moved = 0;
+  if (entry.moved >= leaves) {
+    entry.T_global_robot = *entry.T_to;
+    entry.T_to.reset();
+    entry.moved = 0;
+  }
+  stats.place_s += seconds_since(t0);
+  stats.moving = entry.T_to.has_value();
 }
 
 void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stats, bool body_checked,
@@ -689,12 +693,9 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
     // A move in steps under way: its next step, or (another map or pose) its end at once.
     Entry& fused = it->second;
     const bool go_on = fused.map == next.map && *fused.T_to == T_global_robot && move_step > 0;
-    const auto t0 = std::chrono::steady_clock::now();
     this->move_step(fused, go_on ? move_step : SIZE_MAX, r);
-    r.place_s += seconds_since(t0);
-    if (fused.T_to || (fused.map == next.map && fused.T_global_robot == T_global_robot)) {
+    if (go_on) {
       r.ok = true;
-      r.moving = fused.T_to.has_value();
       return r;
     }
   }
@@ -711,13 +712,10 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
     // content goes out now), then the move in steps.
     diff = add_difference(it->second, next, std::numeric_limits<double>::infinity(), r);
     if (diff == Difference::kPlaced) {
-      const auto t1 = std::chrono::steady_clock::now();
       next.T_to = T_global_robot;
       it->second = std::move(next);
       this->move_step(it->second, move_step, r);
-      r.place_s += seconds_since(t1);
       r.ok = r.incremental = true;
-      r.moving = it->second.T_to.has_value();
       return r;
     }
   }
@@ -737,13 +735,10 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
       r.reason = "map would cost ~" + std::to_string(static_cast<long long>(work)) +
                  " voxel visits, more than max_work (huge pruned leaves?)";
     } else if (move_step > 0 && body && it != robots_.end() && it->second.map == next.map) {
-      // The same map at a new pose: moved in steps, this call the first.
-      const auto t1 = std::chrono::steady_clock::now();
+      // The same map at a new pose: moved in steps, this call the first (no move under way: the
+      // first block ended it).
       it->second.T_to = T_global_robot;
-      it->second.moved = 0;
       this->move_step(it->second, move_step, r);
-      r.place_s += seconds_since(t1);
-      r.moving = it->second.T_to.has_value();
       return r;
     } else {
       const auto t1 = std::chrono::steady_clock::now();

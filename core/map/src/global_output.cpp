@@ -324,8 +324,7 @@ Provenance GlobalFusion::provenance() const {
   std::vector<std::shared_ptr<const octomap::OcTree>> trees;  // built here if not yet
   for (const auto& [robot, entry] : robots_) {
     trees.push_back(entry.map->tree());
-    // (a robot moving in steps is named at its new pose)
-    maps.push_back(NamedMap{robot, trees.back().get(), entry.T_to ? *entry.T_to : entry.T_global_robot});
+    maps.push_back(NamedMap{robot, trees.back().get(), entry.pose()});  // a robot moving in steps: its new pose
   }
   return provenance_of(maps, resolution_);
 }

@@ -95,7 +95,8 @@ class Pipeline {
   bool moved_noticeably(const Eigen::Matrix4d& before, const Eigen::Matrix4d& after) const;
   void search_unknown(const RobotRecord& robot);
   /// `robot`'s prepared map; with features (keypoints, descriptors) only when a global search needs
-  /// them: a known robot's refinement prepares stages 1-2 only (faster, smaller).
+  /// them: a known robot's refinement prepares stages 1-2 only (faster, smaller). The caller holds
+  /// a Registry::AlignmentUse of `robot` while it uses the map (which also stamps its last use).
   std::shared_ptr<const align::PreparedMap> prepared(const std::string& robot, bool features);
   void refine_turn(const std::string& robot);
   void search_turn(const std::string& robot);

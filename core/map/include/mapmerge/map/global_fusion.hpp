@@ -175,6 +175,8 @@ class GlobalFusion {
     /// others still at T_global_robot.
     std::optional<Eigen::Matrix4d> T_to;
     std::size_t moved = 0;
+    /// pose_of(): where the map is fused, or is moving to.
+    const Eigen::Matrix4d& pose() const { return T_to ? *T_to : T_global_robot; }
   };
   /// A pose and the sign its evidence goes in with.
   struct Placement {
@@ -186,6 +188,7 @@ class GlobalFusion {
   std::size_t add_leaves(const HeldMap& map, std::size_t first, std::size_t last,
                          std::initializer_list<Placement> at, GlobalFuseResult& stats);
   /// The next `step` leaves of a moving entry to their new pose; ends the move after the last.
+  /// Adds its time to `stats.place_s` and sets `stats.moving`.
   void move_step(Entry& entry, std::size_t step, GlobalFuseResult& stats);
   /// fuses_by_difference() for the robot's entry.
   bool same_grid(const Entry& fused, const HeldMap& map) const;
