@@ -48,6 +48,7 @@ struct Row {
   std::size_t n1 = 0, n2 = 0;
   double overlap = 0, fitness = 0, t_err = 0, rot_err = 0, trans_err = 0, time_ms = 0;
   bool accepted = false, success = false;
+  bool rescued = false;  ///< a second search on denser features ran (AlignConfig::rescue)
   std::string reason;
   double inlier_share = 0, overlap_est = 0;
   std::size_t inliers = 0;
@@ -140,6 +141,7 @@ Row run_case(const std::string& map, const Prepared& target, const Prepared& sou
   row.accepted = r.accepted;
   row.fitness = r.fitness;
   row.reason = r.reason;
+  row.rescued = r.rescued;
   row.inlier_share = r.inlier_share;
   row.overlap_est = r.overlap;
   row.inliers = r.inliers;
@@ -365,6 +367,7 @@ int main(int argc, char** argv) {
           if (floor_only) continue;  // run_case printed the floor
           std::cerr << pct << "% " << pose.str() << " " << v.name << ": "
                     << (r.success ? "ok" : (r.accepted ? "WRONG" : "rejected (" + r.reason + ")"))
+                    << (r.rescued ? " [rescue]" : "")
                     << " rot " << fmt(r.rot_err, 2) << " trans " << fmt(r.trans_err) << " t "
                     << fmt(r.time_ms / 1000, 2) << "s f " << fmt(r.fitness, 4) << " share "
                     << fmt(r.inlier_share) << " ovl " << fmt(r.overlap_est) << " in " << r.inliers

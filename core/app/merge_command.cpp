@@ -77,6 +77,7 @@ std::string json_result(const align::AlignResult& r, double seconds) {
   j["inlier_share"] = r.inlier_share;
   j["submodel"] = r.submodel;
   j["hypotheses"] = r.hypotheses;
+  j["rescued"] = r.rescued;
   j["reason"] = r.reason;
   j["time_s"] = seconds;
   j["stages"] = nlohmann::json::parse(align::timings_json(r.timings));

@@ -75,6 +75,7 @@ TEST_F(MergeCli, AcceptedPairPrintsJsonAndWritesTheFusedMap) {
   ASSERT_EQ(r.code, 0) << r.out;
   const auto j = nlohmann::json::parse(r.stdout_only);
   EXPECT_TRUE(j.at("accepted").get<bool>());
+  EXPECT_FALSE(j.at("rescued").get<bool>());  // the first search finds the paper's pair
   ASSERT_EQ(j.at("T_target_source").size(), 16U);
   Eigen::Matrix4d T;
   for (int i = 0; i < 16; ++i) T(i / 4, i % 4) = j["T_target_source"][i].get<double>();
@@ -132,7 +133,9 @@ TEST_F(MergeCli, TheWrittenMapIsBothMapsFusedAtThePrintedTransform) {
 TEST_F(MergeCli, NoOverlapExitsThreeAndWritesNothing) {
   const CliRun r = run_cli("merge " + path("scene.bt") + " " + path("far.bt") + " --json -o " + path("none.bt"));
   EXPECT_EQ(r.code, 3) << r.out;
-  EXPECT_FALSE(nlohmann::json::parse(r.stdout_only).at("accepted").get<bool>());
+  const auto j = nlohmann::json::parse(r.stdout_only);
+  EXPECT_FALSE(j.at("accepted").get<bool>());
+  EXPECT_TRUE(j.at("rescued").get<bool>());  // nothing fit: the denser second search ran and refused too
   EXPECT_FALSE(fs::exists(path("none.bt")));
 }
 

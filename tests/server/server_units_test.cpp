@@ -189,7 +189,7 @@ Edge turned(Edge e, const Eigen::Vector3d& axis, double angle_deg) {
 TEST(Registry, RealFleetAWrongEdgeIsRejectedWithEvidenceAndARobotWithOnlyWrongEdgesIsUnknown) {
   const test::FiveRobots& f = test::FiveRobots::get();
   Registry r;
-  const align::AlignConfig config;
+  const align::AlignConfig config = server_align_defaults();  // as the server aligns
   std::vector<std::shared_ptr<const align::PreparedMap>> prepared;
   for (std::size_t i = 0; i < f.ids.size(); ++i) {
     RobotRecord rec;
@@ -648,6 +648,13 @@ TEST(Config, ReadsSectionsAndRejectsUnknownKeys) {
   EXPECT_EQ(c.merge.reference, "r9");
   EXPECT_DOUBLE_EQ(c.publish.min_interval_s, 0.5);
   EXPECT_DOUBLE_EQ(c.align.validate.max_fitness, 0.7);
+  // The align section keeps core/align's defaults but for the rescue, off unless the file sets it.
+  EXPECT_FALSE(c.align.rescue.enabled);
+  EXPECT_FALSE(parse_server_config("").align.rescue.enabled);
+  EXPECT_FALSE(ServerConfig{}.align.rescue.enabled);
+  EXPECT_TRUE(align::AlignConfig{}.rescue.enabled);
+  EXPECT_TRUE(parse_server_config("align: {rescue: {enabled: true}}\n").align.rescue.enabled);
+  EXPECT_DOUBLE_EQ(parse_server_config("align: {rescue: {non_max_radius: 3}}\n").align.rescue.non_max_radius, 3.0);
   EXPECT_THROW(parse_server_config("merge: {thread: 3}\n"), align::ConfigError);
   EXPECT_THROW(parse_server_config("network: {domain: 200}\n"), align::ConfigError);
   EXPECT_THROW(parse_server_config("merge: {threads: many}\n"), align::ConfigError);

@@ -528,13 +528,9 @@ void final_pass(const PreparedMap::Impl& target, const PreparedMap::Impl& source
   restart_from_turns(target, source, cfg, best, t, validate_ms, 0.98);
 }
 
-}  // namespace
-
-AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
-                  const AlignConfig& cfg) {
+/// One global search (stages 3, 6-8) on the maps' features as prepared.
+AlignResult search(const PreparedMap::Impl& target, const PreparedMap::Impl& source, const AlignConfig& cfg) {
   const auto t_all = Clock::now();
-  const PreparedMap::Impl& target = target_map.impl();
-  const PreparedMap::Impl& source = source_map.impl();
   const double res = scale_of(target, source);
   AlignResult result;
   add_prepare_timings(result.timings, target.timings);
@@ -599,6 +595,45 @@ AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
   result.inlier_share = best.fine.inlier_share;
   result.submodel = best.h.submodel;
   return finish(why);
+}
+
+void add_timings(StageTimings& t, const StageTimings& more) {
+  add_prepare_timings(t, more);
+  t.submodels_ms += more.submodels_ms;
+  t.match_ms += more.match_ms;
+  t.validate_ms += more.validate_ms;
+  t.refine_ms += more.refine_ms;
+}
+
+}  // namespace
+
+AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
+                  const AlignConfig& cfg) {
+  const auto t_all = Clock::now();
+  const PreparedMap::Impl& target = target_map.impl();
+  const PreparedMap::Impl& source = source_map.impl();
+  AlignResult first = search(target, source, cfg);
+  // The rescue (AlignConfig::rescue): a second search on denser features, when the first found
+  // nothing that fits (not when two distinct transforms fit: a symmetry stays refused).
+  if (first.accepted || !cfg.rescue.enabled || !target.keypoints || !source.keypoints ||
+      first.reason.rfind(kAmbiguous, 0) == 0)
+    return first;
+  AlignConfig dense = cfg;
+  dense.describe.voxel_size = cfg.rescue.describe_voxel_size;
+  dense.keypoints.non_max_radius = cfg.rescue.non_max_radius;
+  dense.rescue.enabled = false;
+  std::shared_ptr<const PreparedMap::Impl> dense_target, dense_source;
+  tbb::parallel_invoke([&] { dense_target = with_features(target, dense); },
+                       [&] { dense_source = with_features(source, dense); });
+  AlignResult second = search(*dense_target, *dense_source, dense);
+  second.rescued = true;
+  second.hypotheses += first.hypotheses;
+  StageTimings t = first.timings;
+  add_timings(t, second.timings);
+  second.timings = t;
+  second.timings.total_ms = ms_since(t_all);
+  if (!second.accepted) second.reason = first.reason + "; on denser features: " + second.reason;
+  return second;
 }
 
 AlignResult refine(const PreparedMap& target_map, const PreparedMap& source_map,

@@ -100,6 +100,10 @@ void for_each_field(Config& c, F&& f) {
   f("refine", "restart_fitness", r.restart_fitness);
   f("refine", "ndt_resolution", r.ndt_resolution);
   f("refine", "ndt_step", r.ndt_step);
+  auto& q = c.rescue;
+  f("rescue", "enabled", q.enabled);
+  f("rescue", "describe_voxel_size", q.describe_voxel_size);
+  f("rescue", "non_max_radius", q.non_max_radius);
 }
 
 template <class E>
@@ -264,6 +268,8 @@ void check_align_config(const AlignConfig& c) {
   require(c.refine.max_points >= 10, "refine.max_points >= 10");
   require(c.refine.restart_deg >= 0.0 && c.refine.restart_deg <= 45.0, "refine.restart_deg in [0, 45]");
   require(c.refine.restart_fitness >= 0.0, "refine.restart_fitness >= 0");
+  require(c.rescue.describe_voxel_size > 0.0 && c.rescue.non_max_radius > 0.0,
+          "rescue.describe_voxel_size > 0 and rescue.non_max_radius > 0");
 }
 
 AlignConfig parse_align_config(const std::string& yaml_text) {

@@ -263,6 +263,33 @@ const PreparedMap::Impl& PreparedMap::impl() const {
 
 namespace {
 
+/// Stages 4-5 (and the describe cloud) on a map whose stage-2 cloud, with broad normals, is
+/// ready: the ground left out, the describe cloud, its normals, ISS keypoints and descriptors.
+void add_features(PreparedMap::Impl& m, const AlignConfig& config, const LengthUnits& units) {
+  auto t0 = Clock::now();
+  // The ground has no features (the paper): keypoints and descriptors do without it. ICP keeps
+  // it (its target crop: the only surface that fixes height, roll and pitch in a corridor) and
+  // so do validation and fusion.
+  const Cloud::Ptr featured = config.preprocess.remove_ground && m.cloud->size() > 100
+                                  ? remove_ground(m.cloud, config.preprocess, units.tolerance)
+                                  : m.cloud;
+  m.coarse = voxel_grid(featured, config.describe.voxel_size * units.feature);
+  // One tree over the coarse cloud serves its normals, ISS and the descriptors.
+  const auto coarse_tree = std::make_shared<SerialKdTree<Point>>();
+  coarse_tree->setInputCloud(m.coarse);
+  estimate_normals(*m.coarse, *coarse_tree, config.describe.normal_radius * units.feature,
+                   config.preprocess.orient_normals_to_free ? m.free_space.get() : nullptr, m.resolution);
+  m.timings.preprocess_ms += ms_since(t0);
+
+  t0 = Clock::now();
+  const pcl::IndicesPtr indices = detect_iss(m.coarse, coarse_tree, config.keypoints, units.feature);
+  m.timings.keypoints_ms += ms_since(t0);
+
+  t0 = Clock::now();
+  describe(m, coarse_tree, indices, config.describe, units.feature);
+  m.timings.describe_ms += ms_since(t0);
+}
+
 /// Stages 1-2, and 4-5 when `features`, for a map of resolution `res` whose stage-1 points
 /// `read_points` and free leaves `read_free` read.
 template <class ReadPoints, class ReadFree>
@@ -306,27 +333,8 @@ PreparedMap prepare_stages(double res, ReadPoints&& read_points, ReadFree&& read
     m->timings.total_ms = ms_since(t_start);
     return PreparedMap(std::move(m));
   }
-  // The ground has no features (the paper): keypoints and descriptors do without it. ICP keeps
-  // it (its target crop: the only surface that fixes height, roll and pitch in a corridor) and
-  // so do validation and fusion.
-  const Cloud::Ptr featured = config.preprocess.remove_ground && m->cloud->size() > 100
-                                  ? remove_ground(m->cloud, config.preprocess, units.tolerance)
-                                  : m->cloud;
-  m->coarse = voxel_grid(featured, config.describe.voxel_size * units.feature);
-  // One tree over the coarse cloud serves its normals, ISS and the descriptors.
-  const auto coarse_tree = std::make_shared<SerialKdTree<Point>>();
-  coarse_tree->setInputCloud(m->coarse);
-  estimate_normals(*m->coarse, *coarse_tree, config.describe.normal_radius * units.feature,
-                   config.preprocess.orient_normals_to_free ? m->free_space.get() : nullptr, m->resolution);
   m->timings.preprocess_ms = ms_since(t0);
-
-  t0 = Clock::now();
-  const pcl::IndicesPtr indices = detect_iss(m->coarse, coarse_tree, config.keypoints, units.feature);
-  m->timings.keypoints_ms = ms_since(t0);
-
-  t0 = Clock::now();
-  describe(*m, coarse_tree, indices, config.describe, units.feature);
-  m->timings.describe_ms = ms_since(t0);
+  add_features(*m, config, units);
   m->timings.total_ms = ms_since(t_start);
   return PreparedMap(std::move(m));
 }
@@ -344,6 +352,22 @@ PreparedMap prepare_held(const HeldMap& map, const AlignConfig& config, bool fea
 }
 
 }  // namespace
+
+std::shared_ptr<const PreparedMap::Impl> with_features(const PreparedMap::Impl& m, const AlignConfig& config) {
+  check_align_config(config);
+  const auto t0 = Clock::now();
+  auto copy = std::make_shared<PreparedMap::Impl>(m);
+  copy->timings = StageTimings{};
+  copy->coarse.reset();
+  copy->keypoints.reset();
+  copy->fpfh.reset();
+  copy->shot.reset();
+  copy->fpfh_tree.reset();
+  copy->shot_tree.reset();
+  add_features(*copy, config, length_units(copy->resolution, config));
+  copy->timings.total_ms = ms_since(t0);
+  return copy;
+}
 
 PreparedMap prepare_map(const octomap::OcTree& tree, const AlignConfig& config) {
   return prepare_tree(tree, config, true);

@@ -47,6 +47,10 @@ struct PreparedMap::Impl {
 void estimate_normals(Cloud& cloud, const SerialKdTree<Point>& search, double radius, const LeafSet* orient_to,
                       double res);
 
+/// A copy of `m` (stages 1-2 shared, not copied) with stages 4-5 computed anew under `config`:
+/// the denser features of AlignConfig::rescue. `m` must have been prepared with features.
+std::shared_ptr<const PreparedMap::Impl> with_features(const PreparedMap::Impl& m, const AlignConfig& config);
+
 /// A hypothesis of stage 6 with its correspondence consensus.
 struct Hypothesis {
   Eigen::Matrix4d T_target_source = Eigen::Matrix4d::Identity();

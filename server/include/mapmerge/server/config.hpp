@@ -84,13 +84,24 @@ struct StoreConfig {
   double retry_period_s = 2.0;       ///< while writes failed (disk full, read-only), retry them this often [s]
 };
 
+/// core/align's defaults with the rescue off (ServerConfig::align).
+inline align::AlignConfig server_align_defaults() {
+  align::AlignConfig c;
+  c.rescue.enabled = false;
+  return c;
+}
+
 struct ServerConfig {
   NetworkConfig network;
   MergeConfig merge;
   PublishConfig publish;
   StoreConfig store;
   DecodeLimits limits;               ///< bounds every incoming map must respect
-  align::AlignConfig align;          ///< the registration pipeline (core/align)
+  /// The registration pipeline (core/align), with its defaults but for `rescue.enabled`, off
+  /// unless the file sets it: a failed global search with the rescue costs ~4x one without, and
+  /// the server retries a robot's search as its map grows and falls back to blocks
+  /// (merge.search_blocks_fallback) instead. `mapmerge merge`, which has one chance, keeps it.
+  align::AlignConfig align = server_align_defaults();
 };
 
 /// Reads a YAML file with sections `network`, `merge`, `publish`, `store`, `limits` and

@@ -55,7 +55,8 @@ struct AlignResult {
   double overlap = 0.0;         ///< estimated share of points seen by both maps [0..1]
   double inlier_share = 0.0;    ///< inliers / (inliers + contradictions) [0..1]
   int submodel = -1;            ///< winning block in spiral order; -1 whole map / none
-  std::size_t hypotheses = 0;   ///< raw hypotheses generated [count]
+  std::size_t hypotheses = 0;   ///< raw hypotheses generated [count] (both searches' when rescued)
+  bool rescued = false;         ///< the first search found nothing acceptable and a second, on denser features (AlignConfig::rescue), ran
   std::string reason;           ///< why not accepted (empty when accepted)
   StageTimings timings;
 };

@@ -148,6 +148,19 @@ struct RefineConfig {
   double ndt_step = 4.0;         ///< NDT More-Thuente step size [x max(u, res)]
 };
 
+/// A second global search, on denser features, when the first finds no hypothesis that passes
+/// validation. Not when the first was refused as ambiguous: two distinct transforms that both fit
+/// are a symmetry, which more features do not make safe. At a narrow overlap (fr_078_tidyup at
+/// 10 %: a 1.4 m strip, narrower than two descriptor radii) few keypoints lie in the strip and
+/// the first search can miss the truth; a describe cloud of 2.5 u with ISS suppression over 4 u
+/// found it in 36 of 36 such cases (the defaults: 24 of 36) at ~3.5x the time, so it runs only
+/// after a failed search, where it adds that cost (bench/results/README.md, "Rescue").
+struct RescueConfig {
+  bool enabled = true;
+  double describe_voxel_size = 2.5;  ///< describe.voxel_size of the second search [x u, at least 1 res]
+  double non_max_radius = 4.0;       ///< keypoints.non_max_radius of the second search [x u]
+};
+
 /// Every stage's settings. `load_align_config` reads it from YAML; `dump_*` write it.
 struct AlignConfig {
   ScaleConfig scale;
@@ -159,6 +172,7 @@ struct AlignConfig {
   MatchConfig match;
   ValidateConfig validate;
   RefineConfig refine;
+  RescueConfig rescue;
   unsigned seed = 42;            ///< random seed of the sample-consensus stages
 };
 
