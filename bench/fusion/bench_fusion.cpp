@@ -95,7 +95,45 @@ int main(int argc, char** argv) {
   app.add_option("--repeat", repeat, "updates by the bodies measured (medians printed)")->check(CLI::Range(1, 1000));
   unsigned threads = 0;
   app.add_option("--threads", threads, "GlobalFusion's threads (0: its default)");
+  std::size_t move_step = 0;
+  app.add_option("--move-step", move_step,
+                 "instead of the table: the whole map fused, then moved by 2 cm and 1 deg in steps of this many "
+                 "leaves (publish.move_step_leaves); prints each step's wall time");
   CLI11_PARSE(app, argc, argv);
+  if (move_step > 0) {
+    const std::shared_ptr<const octomap::OcTree> world_map = read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/" + map);
+    const auto body = std::make_shared<const std::vector<std::uint8_t>>(
+        [&] {
+          const auto bytes = encode_map(*world_map, Encoding::kOctomapBt);
+          const DecodeResult d = decode_map(bytes, Encoding::kOctomapBt, DecodeLimits{});
+          return *d.binary_body;
+        }());
+    const auto held = std::make_shared<const HeldMap>(world_map, body);
+    GlobalFusion g(held->resolution());
+    if (threads != 0) g.set_threads(threads);
+    const Eigen::Matrix4d T0 = Eigen::Matrix4d::Identity();
+    double t = wall_ms();
+    g.set("r", held, T0);
+    g.encode();
+    std::printf("map %s: %zu nodes fused in %.0f ms on %u thread(s); moved in steps of %zu leaves:\n", map.c_str(),
+                held->num_nodes(), wall_ms() - t, g.threads(), move_step);
+    Eigen::Matrix4d T1 = Eigen::Matrix4d::Identity();
+    T1.topLeftCorner<3, 3>() = Eigen::AngleAxisd(M_PI / 180.0, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+    T1(0, 3) = 0.02;
+    std::vector<double> steps, encodes;
+    for (int i = 0; i < 10000; ++i) {
+      t = wall_ms();
+      const GlobalFuseResult r = g.set("r", held, T1, 0.0, move_step);
+      steps.push_back(wall_ms() - t);
+      t = wall_ms();
+      g.encode();
+      encodes.push_back(wall_ms() - t);
+      if (!r.moving) break;
+    }
+    std::printf("%zu steps: step median %.1f ms, max %.1f ms; encode after a step median %.1f ms\n", steps.size(),
+                median(steps), *std::max_element(steps.begin(), steps.end()), median(encodes));
+    return 0;
+  }
   const auto world = read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/" + map);
   const double res = world->getResolution();
   const unsigned used = threads != 0 ? threads : GlobalFusion(world->getResolution()).threads();

@@ -164,6 +164,16 @@ class BodyDiff {
   std::vector<ChangedCube> cubes;
   double work = 0.0;  ///< fusion work of the new map (as TreeDiff counts it)
 
+  /// Gives only the changed cubes [first, last) of the walk's order, and stops walking at the
+  /// one after (run() then returns false: the bodies were not read to their ends). A move in
+  /// steps walks each step's slice this way, not the whole body.
+  void set_range(std::size_t first, std::size_t last) {
+    first_ = first;
+    last_ = last;
+  }
+  std::size_t changed_seen() const { return seen_; }  ///< changed cubes met, given or not
+  bool stopped() const { return stopped_; }           ///< the walk ended at `last`
+
  private:
   enum Code : unsigned { kUnknown = 0, kFree = 1, kOccupied = 2, kInner = 3 };
 
@@ -196,6 +206,13 @@ class BodyDiff {
   void compare(unsigned ca, unsigned cb, const octomap::OcTreeKey& key, unsigned depth) {
     const std::int64_t ea = ca == kUnknown ? 0 : ea_[ca], eb = cb == kUnknown ? 0 : eb_[cb];
     if (ea == eb) return;
+    const std::size_t index = seen_++;
+    if (index >= last_) {
+      stopped_ = true;
+      ok_ = false;  // ends the walk
+      return;
+    }
+    if (index < first_) return;
     ChangedCube cube{Eigen::Vector3d(coord(key[0], depth), coord(key[1], depth), coord(key[2], depth)),
                      node_size(depth), eb - ea};
     if (emit_) {
@@ -297,6 +314,10 @@ class BodyDiff {
   double target_res_;
   const FuseConfig& config_;
   std::function<void(const ChangedCube&)> emit_;
+  std::size_t first_ = 0;
+  std::size_t last_ = SIZE_MAX;
+  std::size_t seen_ = 0;
+  bool stopped_ = false;
   std::int64_t ea_[3] = {0, 0, 0};
   std::int64_t eb_[3] = {0, 0, 0};
   double leaf_work_[kTreeDepth + 1] = {};  ///< fusion work of one leaf of the new map, by depth
@@ -523,7 +544,6 @@ std::size_t GlobalFusion::memory_usage() const { return sums_->memoryUsage(); }
 std::size_t GlobalFusion::add_leaves(const HeldMap& map, std::size_t first, std::size_t last,
                                      std::initializer_list<Placement> at, GlobalFuseResult& stats) {
   FuseResult counts;
-  double work = 0.0;
   constexpr std::size_t kRun = std::size_t{1} << 16;
   std::vector<ChangedCube> run, negated;
   const auto flush = [&] {
@@ -538,21 +558,23 @@ std::size_t GlobalFusion::add_leaves(const HeldMap& map, std::size_t first, std:
     }
     run.clear();
   };
-  std::size_t index = 0;
   const auto add = [&](const ChangedCube& cube) {
-    const std::size_t i = index++;
-    if (i < first || i >= last) return;
     ++stats.cubes;
     run.push_back(cube);
     if (run.size() >= kRun) flush();
   };
-  if (!whole_body(map, false, resolution_, config_, add, work, true)) {
+  if (!map.binary_body() || map.resolution() < resolution_ * (1 - 1e-9)) {
     throw MapError("GlobalFusion: a map moved in steps has no checked body");  // set() checked it
   }
+  // Only the slice is walked to (its cubes' coordinates computed, given to `add`); the walk stops
+  // after it. A walk that reaches the body's end has counted all its leaves.
+  BodyDiff walk(nullptr, &map, resolution_, config_, add);
+  walk.set_range(first, last);
+  walk.run();
   flush();
   stats.voxel_updates += counts.voxel_updates;
   stats.block_updates += counts.block_updates;
-  return index;
+  return walk.stopped() ? SIZE_MAX : walk.changed_seen();
 }
 
 void GlobalFusion::move_step(Entry& entry, std::size_t step, GlobalFuseResult& stats) {

@@ -183,8 +183,9 @@ class GlobalFusion {
     const Eigen::Matrix4d* T;
     int sign;
   };
-  /// Places the leaves [first, last) of `map`'s body walk at each of `at`; returns the number of
-  /// leaves the walk gave (the whole map's). The map must have a body whole_body() takes.
+  /// Places the leaves [first, last) of `map`'s body walk at each of `at`, walking the body only
+  /// as far as `last`; returns the map's number of leaves when the walk reached the body's end,
+  /// else SIZE_MAX (more leaves follow). The map must have a body whole_body() takes.
   std::size_t add_leaves(const HeldMap& map, std::size_t first, std::size_t last,
                          std::initializer_list<Placement> at, GlobalFuseResult& stats);
   /// The next `step` leaves of a moving entry to their new pose; ends the move after the last.
