@@ -52,6 +52,14 @@ const octomap::OcTree& fr079() {
   return *tree;
 }
 
+/// fr_078_tidyup cut as mapmerge_bench_align cuts it, the parts sharing 10 % of the occupied
+/// voxels (a 1.4 m strip), the source moved by T_R (one of the bench's transforms).
+Pair room_at_ten_percent(const Eigen::Matrix4d& T_R) {
+  static const auto tree = load("fr_078_tidyup.bt");
+  const auto [target_box, source_box] = mapmerge::overlap_cut(*tree, 0, 0.10);
+  return make_pair(*tree, target_box, source_box, T_R);
+}
+
 }  // namespace
 
 TEST(AlignPipeline, RecoversThePapersPair) {
@@ -133,15 +141,12 @@ TEST(AlignPipeline, GroundRemovalLeavesTheFloorToIcpAndFindsTheSameTransform) {
 }
 
 TEST(AlignPipeline, ANarrowOverlapsLooseLocalFitGivesWayToTheTruesOne) {
-  // The room cut as mapmerge_bench_align cuts it, the parts sharing 10 % of the occupied voxels
-  // (a 1.4 m strip): the final ICP pass stopped 3.2 deg and 0.5 m off (fitness 0.034 m, the
+  // At 10 % overlap the final ICP pass stopped 3.2 deg and 0.5 m off (fitness 0.034 m, the
   // truth's 0.027 m) and that passed validation. refine.restart_deg's restarts find the truth's.
-  const auto tree = load("fr_078_tidyup.bt");
-  const auto [target_box, source_box] = mapmerge::overlap_cut(*tree, 0, 0.10);
   // The bench's 12th transform at 10 % (--seed 1): (-3.6, 2.9, -0.5, 4°, 0°, -19°).
-  const Pair p = make_pair(*tree, target_box, source_box,
-                           mapmerge::paper_transform(-3.600338796005131, 2.92403579343783, -0.47019863968142428,
-                                                     3.8312547178625938, 0.40788191813836328, -18.72713412868535));
+  const Pair p = room_at_ten_percent(mapmerge::paper_transform(-3.600338796005131, 2.92403579343783,
+                                                               -0.47019863968142428, 3.8312547178625938,
+                                                               0.40788191813836328, -18.72713412868535));
   const ma::AlignResult r = ma::align_maps(*p.target, *p.source, ma::AlignConfig{});
   ASSERT_TRUE(r.accepted) << r.reason;
   const Errors e = errors(r.T_target_source, p.T_true);
@@ -154,11 +159,9 @@ TEST(AlignPipeline, ANarrowOverlapTheFirstSearchMissesIsFoundOnDenserFeatures) {
   // The bench's 4th transform at 10 % (--seed 1): (4.4, 2.8, 0.2, 3°, -4°, 7°). On the default
   // features no hypothesis near the truth comes up (the best fits at 0.041 m and is refused); the
   // rescue's second search, on a denser describe cloud, finds the truth.
-  const auto tree = load("fr_078_tidyup.bt");
-  const auto [target_box, source_box] = mapmerge::overlap_cut(*tree, 0, 0.10);
-  const Pair p = make_pair(*tree, target_box, source_box,
-                           mapmerge::paper_transform(4.3912779496526042, 2.7838923553891979, 0.21597051103616705,
-                                                     3.0275750345742836, -4.0719918969240405, 6.5349174219267923));
+  const Pair p = room_at_ten_percent(mapmerge::paper_transform(4.3912779496526042, 2.7838923553891979,
+                                                               0.21597051103616705, 3.0275750345742836,
+                                                               -4.0719918969240405, 6.5349174219267923));
   const ma::PreparedMap target = ma::prepare_map(*p.target, ma::AlignConfig{});
   const ma::PreparedMap source = ma::prepare_map(*p.source, ma::AlignConfig{});
 
@@ -181,11 +184,9 @@ TEST(AlignPipeline, AnAmbiguousRefusalIsFinalAndGetsNoSecondSearch) {
   // The bench's 6th transform at 10 % (--seed 1): (0.9, 1.7, -0.1, -3°, -2°, -129°). A near-true
   // transform and a distinct one fit almost equally (0.98 of the score): the pair is refused as
   // ambiguous, and the rescue does not search again for a tie-breaker.
-  const auto tree = load("fr_078_tidyup.bt");
-  const auto [target_box, source_box] = mapmerge::overlap_cut(*tree, 0, 0.10);
-  const Pair p = make_pair(*tree, target_box, source_box,
-                           mapmerge::paper_transform(0.93065516813273241, 1.7165409178033189, -0.088212120822190876,
-                                                     -3.0244910634747582, -2.103703560559365, -128.83675212189888));
+  const Pair p = room_at_ten_percent(mapmerge::paper_transform(0.93065516813273241, 1.7165409178033189,
+                                                               -0.088212120822190876, -3.0244910634747582,
+                                                               -2.103703560559365, -128.83675212189888));
   const ma::AlignResult r = ma::align_maps(*p.target, *p.source, ma::AlignConfig{});
   EXPECT_FALSE(r.accepted);
   EXPECT_EQ(r.reason.rfind("ambiguous", 0), 0U) << r.reason;
