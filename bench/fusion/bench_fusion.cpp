@@ -101,14 +101,8 @@ int main(int argc, char** argv) {
                  "leaves (publish.move_step_leaves); prints each step's wall time");
   CLI11_PARSE(app, argc, argv);
   if (move_step > 0) {
-    const std::shared_ptr<const octomap::OcTree> world_map = read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/" + map);
-    const auto body = std::make_shared<const std::vector<std::uint8_t>>(
-        [&] {
-          const auto bytes = encode_map(*world_map, Encoding::kOctomapBt);
-          const DecodeResult d = decode_map(bytes, Encoding::kOctomapBt, DecodeLimits{});
-          return *d.binary_body;
-        }());
-    const auto held = std::make_shared<const HeldMap>(world_map, body);
+    // Read as the server holds a received map: its checked bytes (the body the steps walk).
+    const std::shared_ptr<const HeldMap> held = read_map_file(std::string(MAPMERGE_DATA_DIR) + "/" + map);
     GlobalFusion g(held->resolution());
     if (threads != 0) g.set_threads(threads);
     const Eigen::Matrix4d T0 = Eigen::Matrix4d::Identity();

@@ -154,9 +154,7 @@ ServerConfig parse_server_config(const std::string& yaml_text) {
   if (root["align"]) {
     YAML::Emitter out;
     out << root["align"];
-    c.align = align::parse_align_config(out.c_str());
-    const YAML::Node rescue = root["align"]["rescue"];
-    if (!rescue || !rescue["enabled"]) c.align.rescue.enabled = false;  // the server's default (config.hpp)
+    c.align = align::parse_align_config(out.c_str(), server_align_defaults());
   }
   check(c);
   return c;

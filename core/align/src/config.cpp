@@ -272,14 +272,14 @@ void check_align_config(const AlignConfig& c) {
           "rescue.describe_voxel_size > 0 and rescue.non_max_radius > 0");
 }
 
-AlignConfig parse_align_config(const std::string& yaml_text) {
+AlignConfig parse_align_config(const std::string& yaml_text, const AlignConfig& base) {
   YAML::Node root;
   try {
     root = YAML::Load(yaml_text);
   } catch (const YAML::Exception& e) {
     throw ConfigError(std::string("config is not valid YAML: ") + e.what());
   }
-  AlignConfig config;
+  AlignConfig config = base;
   if (root.IsNull()) return config;
   if (!root.IsMap()) throw ConfigError("config must be a YAML mapping of sections");
   check_known_keys(root);

@@ -324,6 +324,12 @@ class BodyDiff {
   bool ok_ = true;
 };
 
+/// Whether `map` has a binary body a BodyDiff walk can place on a grid of `target_res` (not
+/// finer than the grid: finer leaves are voted per voxel, on the tree).
+bool walkable_body(const HeldMap& map, double target_res) {
+  return map.binary_body() && map.resolution() >= target_res * (1 - 1e-9);
+}
+
 /// A whole map's evidence read off its binary body (no tree): its fusion work (estimate_work's
 /// measure) and, if `emit` is given, each leaf to it as a cube of +evidence (-evidence when
 /// `remove`). False, with nothing emitted, when the map has no body, its body is not a complete
@@ -331,7 +337,7 @@ class BodyDiff {
 /// `checked`: a call of this map without `emit` returned true already (its work is not counted).
 bool whole_body(const HeldMap& map, bool remove, double target_res, const FuseConfig& config,
                 const std::function<void(const ChangedCube&)>& emit, double& work, bool checked = false) {
-  if (!map.binary_body() || map.resolution() < target_res * (1 - 1e-9)) return false;
+  if (!walkable_body(map, target_res)) return false;
   const HeldMap* before = remove ? &map : nullptr;
   const HeldMap* after = remove ? nullptr : &map;
   if (!checked) {
@@ -563,7 +569,7 @@ std::size_t GlobalFusion::add_leaves(const HeldMap& map, std::size_t first, std:
     run.push_back(cube);
     if (run.size() >= kRun) flush();
   };
-  if (!map.binary_body() || map.resolution() < resolution_ * (1 - 1e-9)) {
+  if (!walkable_body(map, resolution_)) {
     throw MapError("GlobalFusion: a map moved in steps has no checked body");  // set() checked it
   }
   // Only the slice is walked to (its cubes' coordinates computed, given to `add`); the walk stops

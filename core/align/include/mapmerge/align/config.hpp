@@ -185,8 +185,8 @@ class ConfigError : public std::runtime_error {
 /// Reads a YAML file whose sections mirror AlignConfig (`preprocess: {voxel_size: 3}`); keys not
 /// given keep their defaults; unknown keys or bad values throw ConfigError.
 AlignConfig load_align_config(const std::string& yaml_path);
-/// Same from YAML text.
-AlignConfig parse_align_config(const std::string& yaml_text);
+/// Same from YAML text; keys not given keep `base`'s values (default: AlignConfig's own).
+AlignConfig parse_align_config(const std::string& yaml_text, const AlignConfig& base = AlignConfig{});
 /// Throws ConfigError when a value is out of its range.
 void check_align_config(const AlignConfig& config);
 std::string dump_align_config_yaml(const AlignConfig& config);
