@@ -178,6 +178,24 @@ TEST(AlignPipeline, ANarrowOverlapTheFirstSearchMissesIsFoundOnDenserFeatures) {
   const Errors e = errors(r.T_target_source, p.T_true);
   EXPECT_LT(e.rot_deg, 1.0);
   EXPECT_LT(e.trans_m, 0.1);
+
+  // The second search alone, later (the server's idle rescue), with the rescue off in the config.
+  EXPECT_FALSE(ma::ambiguous_refusal(first.reason)) << first.reason;
+  // Cancelled at once, or at its 5th question (midway through the search): not accepted, says so.
+  const ma::AlignResult stopped = ma::rescue(target, source, once, [] { return true; });
+  EXPECT_FALSE(stopped.accepted);
+  EXPECT_EQ(stopped.reason, "cancelled");
+  int asked = 0;
+  const ma::AlignResult midway = ma::rescue(target, source, once, [&] { return ++asked >= 5; });
+  EXPECT_FALSE(midway.accepted);
+  EXPECT_EQ(midway.reason, "cancelled");
+  EXPECT_GE(asked, 5);
+  const ma::AlignResult later = ma::rescue(target, source, once);
+  ASSERT_TRUE(later.accepted) << later.reason;
+  EXPECT_TRUE(later.rescued);
+  const Errors e_later = errors(later.T_target_source, p.T_true);
+  EXPECT_LT(e_later.rot_deg, 1.0);
+  EXPECT_LT(e_later.trans_m, 0.1);
 }
 
 TEST(AlignPipeline, AnAmbiguousRefusalIsFinalAndGetsNoSecondSearch) {
@@ -190,6 +208,7 @@ TEST(AlignPipeline, AnAmbiguousRefusalIsFinalAndGetsNoSecondSearch) {
   const ma::AlignResult r = ma::align_maps(*p.target, *p.source, ma::AlignConfig{});
   EXPECT_FALSE(r.accepted);
   EXPECT_EQ(r.reason.rfind("ambiguous", 0), 0U) << r.reason;
+  EXPECT_TRUE(ma::ambiguous_refusal(r.reason));
   EXPECT_FALSE(r.rescued);
 }
 

@@ -369,7 +369,7 @@ std::vector<Candidate> search_blocks(const PreparedMap::Impl& target, const Prep
                                      const std::vector<Match>& matches,
                                      const std::vector<std::vector<int>>& subsets,
                                      const AlignConfig& cfg, std::atomic<double>& match_ms,
-                                     std::atomic<double>& validate_ms, std::size_t& raw) {
+                                     std::atomic<double>& validate_ms, std::size_t& raw, const Cancel& cancel) {
   const double res = tolerance_of(target, source, cfg);
   std::vector<Candidate> found;
   std::mutex lock;
@@ -377,7 +377,7 @@ std::vector<Candidate> search_blocks(const PreparedMap::Impl& target, const Prep
   std::atomic<bool> stop{false};
   const ValidateConfig& vc = cfg.validate;
   auto worker = [&](int) {
-    for (std::size_t i = next++; i < subsets.size() && !stop; i = next++) {
+    for (std::size_t i = next++; i < subsets.size() && !stop && !(cancel && cancel()); i = next++) {
       auto t0 = Clock::now();
       std::vector<Hypothesis> hyps = generate_hypotheses(target, source, matches, subsets[i], cfg,
                                                          cfg.seed + static_cast<unsigned>(i));
@@ -435,6 +435,7 @@ std::vector<Candidate> shortlist(std::vector<Candidate> all, const ValidateConfi
 std::size_t fine_samples(const ValidateConfig& c) { return c.coarse_points * 2; }
 
 constexpr const char* kAmbiguous = "ambiguous";
+constexpr const char* kCancelled = "cancelled";
 
 /// Sorts refined candidates by score; empty string when the best passes every test and no
 /// distinct alternative comes close (repetitive corridors, symmetric rooms), else the reason.
@@ -529,7 +530,8 @@ void final_pass(const PreparedMap::Impl& target, const PreparedMap::Impl& source
 }
 
 /// One global search (stages 3, 6-8) on the maps' features as prepared.
-AlignResult search(const PreparedMap::Impl& target, const PreparedMap::Impl& source, const AlignConfig& cfg) {
+AlignResult search(const PreparedMap::Impl& target, const PreparedMap::Impl& source, const AlignConfig& cfg,
+                   const Cancel& cancel) {
   const auto t_all = Clock::now();
   const double res = scale_of(target, source);
   AlignResult result;
@@ -543,6 +545,7 @@ AlignResult search(const PreparedMap::Impl& target, const PreparedMap::Impl& sou
     result.timings.total_ms = ms_since(t_all);
     return result;
   };
+  const auto cancelled = [&] { return cancel && cancel(); };
   if (!source.keypoints || !target.keypoints) return finish("a map was prepared without features (prepare_for_refine)");
   if (source.keypoints->size() < 3 || target.keypoints->size() < 3)
     return finish("too few keypoints (target " + std::to_string(target.keypoints->size()) +
@@ -556,14 +559,17 @@ AlignResult search(const PreparedMap::Impl& target, const PreparedMap::Impl& sou
   result.timings.submodels_ms = ms_since(t0);
   std::vector<Candidate> cands =
       shortlist(search_blocks(target, source, matches, subsets, cfg, match_ms, validate_ms,
-                              result.hypotheses),
+                              result.hypotheses, cancel),
                 cfg.validate, units);
+  if (cancelled()) return finish(kCancelled);
   if (cands.empty())
     return finish("no hypothesis agrees with the maps (" + std::to_string(result.hypotheses) +
                   " raw, from " + std::to_string(matches.size()) + " correspondences)");
   t0 = Clock::now();
-  for (Candidate& c : cands)
+  for (Candidate& c : cands) {
+    if (cancelled()) return finish(kCancelled);
     c.T_refined = local_alignment(target, source, c.h.T_target_source, cfg, Pass::kCandidate);
+  }
   result.timings.refine_ms = ms_since(t0);
   t0 = Clock::now();
   for (Candidate& c : cands)
@@ -571,10 +577,11 @@ AlignResult search(const PreparedMap::Impl& target, const PreparedMap::Impl& sou
                    units.tolerance);
   std::string why = select_best(cands, cfg.validate, units);
   add_ms(validate_ms, t0);
+  if (cancelled()) return finish(kCancelled);
   if (why.empty()) {
     // With the pair-distance ramp: a candidate may still be degrees off.
     final_pass(target, source, cfg, cands.front(), result.timings, validate_ms, false);
-  } else if (why.rfind(kAmbiguous, 0) == 0) {
+  } else if (ambiguous_refusal(why)) {
     // Near-equal distinct candidates are often one basin that the first ICP left apart: the
     // final pass brings them together (then one is a duplicate) or shows which one is better.
     // A pass is kept only if it scores no lower, so no alternative can fall below the ambiguity
@@ -607,26 +614,46 @@ void add_timings(StageTimings& t, const StageTimings& more) {
 
 }  // namespace
 
-AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
-                  const AlignConfig& cfg) {
-  const auto t_all = Clock::now();
-  const PreparedMap::Impl& target = target_map.impl();
-  const PreparedMap::Impl& source = source_map.impl();
-  AlignResult first = search(target, source, cfg);
-  // The rescue (AlignConfig::rescue): a second search on denser features, when the first found
-  // nothing that fits (not when two distinct transforms fit: a symmetry stays refused).
-  if (first.accepted || !cfg.rescue.enabled || !target.keypoints || !source.keypoints ||
-      first.reason.rfind(kAmbiguous, 0) == 0)
-    return first;
+namespace {
+
+/// The rescue's search (AlignConfig::rescue): the same maps' stages 1-2, denser features.
+AlignResult dense_search(const PreparedMap::Impl& target, const PreparedMap::Impl& source, const AlignConfig& cfg,
+                         const Cancel& cancel) {
   AlignConfig dense = cfg;
   dense.describe.voxel_size = cfg.rescue.describe_voxel_size;
   dense.keypoints.non_max_radius = cfg.rescue.non_max_radius;
   dense.rescue.enabled = false;
   std::shared_ptr<const PreparedMap::Impl> dense_target, dense_source;
+  AlignResult r;
+  r.rescued = true;
+  r.reason = kCancelled;
+  if (cancel && cancel()) return r;
   tbb::parallel_invoke([&] { dense_target = with_features(target, dense); },
                        [&] { dense_source = with_features(source, dense); });
-  AlignResult second = search(*dense_target, *dense_source, dense);
-  second.rescued = true;
+  if (cancel && cancel()) return r;
+  r = search(*dense_target, *dense_source, dense, cancel);
+  r.rescued = true;
+  return r;
+}
+
+bool has_keypoints(const PreparedMap::Impl& m) { return m.keypoints != nullptr; }
+
+}  // namespace
+
+bool ambiguous_refusal(const std::string& reason) { return reason.rfind(kAmbiguous, 0) == 0; }
+
+AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map, const AlignConfig& cfg,
+                  const Cancel& cancel) {
+  const auto t_all = Clock::now();
+  const PreparedMap::Impl& target = target_map.impl();
+  const PreparedMap::Impl& source = source_map.impl();
+  AlignResult first = search(target, source, cfg, cancel);
+  // The rescue (AlignConfig::rescue): a second search on denser features, when the first found
+  // nothing that fits (not when two distinct transforms fit: a symmetry stays refused).
+  if (first.accepted || !cfg.rescue.enabled || !has_keypoints(target) || !has_keypoints(source) ||
+      ambiguous_refusal(first.reason) || first.reason == kCancelled)
+    return first;
+  AlignResult second = dense_search(target, source, cfg, cancel);
   second.hypotheses += first.hypotheses;
   StageTimings t = first.timings;
   add_timings(t, second.timings);
@@ -634,6 +661,21 @@ AlignResult align(const PreparedMap& target_map, const PreparedMap& source_map,
   second.timings.total_ms = ms_since(t_all);
   if (!second.accepted) second.reason = first.reason + "; on denser features: " + second.reason;
   return second;
+}
+
+AlignResult rescue(const PreparedMap& target_map, const PreparedMap& source_map, const AlignConfig& cfg,
+                   const Cancel& cancel) {
+  const auto t_all = Clock::now();
+  const PreparedMap::Impl& target = target_map.impl();
+  const PreparedMap::Impl& source = source_map.impl();
+  if (!has_keypoints(target) || !has_keypoints(source)) {
+    AlignResult r;
+    r.reason = "a map was prepared without features (prepare_for_refine)";
+    return r;
+  }
+  AlignResult r = dense_search(target, source, cfg, cancel);
+  r.timings.total_ms = ms_since(t_all);
+  return r;
 }
 
 AlignResult refine(const PreparedMap& target_map, const PreparedMap& source_map,

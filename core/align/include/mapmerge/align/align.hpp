@@ -8,6 +8,7 @@
 /// "No alignment" is a value (AlignResult::accepted == false with a reason), never an exception.
 
 #include <cstddef>
+#include <functional>
 #include <limits>
 #include <memory>
 #include <string>
@@ -96,9 +97,24 @@ PreparedMap prepare_for_refine(const octomap::OcTree& tree, const AlignConfig& c
 PreparedMap prepare_map(const HeldMap& map, const AlignConfig& config);
 PreparedMap prepare_for_refine(const HeldMap& map, const AlignConfig& config);
 
-/// Global search: stages 3, 6, 7, 8. Never throws for "no alignment".
-AlignResult align(const PreparedMap& target, const PreparedMap& source, const AlignConfig& config);
+/// Asked between a global search's steps (blocks, candidates, the rescue's feature builds): once
+/// it returns true the search stops and returns not accepted, reason "cancelled". For a caller
+/// that must not wait for a whole search (a server shutting down, a map replaced meanwhile).
+using Cancel = std::function<bool()>;
 
+/// Global search: stages 3, 6, 7, 8. Never throws for "no alignment".
+AlignResult align(const PreparedMap& target, const PreparedMap& source, const AlignConfig& config,
+                  const Cancel& cancel = {});
+
+/// The rescue's search alone (AlignConfig::rescue's denser features, whether or not
+/// rescue.enabled), for a pair that align() without the rescue refused: to be run later, when
+/// there is time to spare (the server's idle work). Sets `rescued`; never throws for "no
+/// alignment". Its timings are this search's only.
+AlignResult rescue(const PreparedMap& target, const PreparedMap& source, const AlignConfig& config,
+                   const Cancel& cancel = {});
+/// Whether a refusal's reason says two distinct transforms fit almost equally: align() gives
+/// such a pair no second search (more features would only pick one side of a symmetry).
+bool ambiguous_refusal(const std::string& reason);
 /// Local only: stage 8 from T_target_source_init, then stage 7 on the result.
 AlignResult refine(const PreparedMap& target, const PreparedMap& source,
                    const Eigen::Matrix4d& T_target_source_init, const AlignConfig& config);
