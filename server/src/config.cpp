@@ -46,7 +46,7 @@ void read_network(const YAML::Node& n, NetworkConfig& c) {
 void read_merge(const YAML::Node& n, MergeConfig& c) {
   check_keys(n, "merge", {"threads", "ingest_threads", "merge_nice", "reference", "global_frame", "global_resolution", "refine_known",
                           "refine_min_change", "search_blocks_fallback",
-                          "refine_republish_translation", "refine_republish_rotation_deg", "extra_pairs",
+                          "refine_republish_translation", "refine_republish_rotation_deg", "idle_rescue", "idle_rescue_after_s", "extra_pairs",
                           "extra_min_overlap", "extra_overlap_samples", "extra_global_fallback", "extra_max_jobs",
                           "keep_lost_maps", "alignment_data_hold_s", "session_conflict_hold_s"});
   read(n, "threads", c.threads, "merge");
@@ -60,6 +60,8 @@ void read_merge(const YAML::Node& n, MergeConfig& c) {
   read(n, "search_blocks_fallback", c.search_blocks_fallback, "merge");
   read(n, "refine_republish_translation", c.refine_republish_translation, "merge");
   read(n, "refine_republish_rotation_deg", c.refine_republish_rotation_deg, "merge");
+  read(n, "idle_rescue", c.idle_rescue, "merge");
+  read(n, "idle_rescue_after_s", c.idle_rescue_after_s, "merge");
   read(n, "extra_pairs", c.extra_pairs, "merge");
   read(n, "extra_min_overlap", c.extra_min_overlap, "merge");
   read(n, "extra_overlap_samples", c.extra_overlap_samples, "merge");
@@ -118,6 +120,9 @@ void check(const ServerConfig& c) {
   if (c.merge.extra_max_jobs < 0) throw ConfigError("merge.extra_max_jobs must be >= 0");
   if (!(c.merge.session_conflict_hold_s >= 0.0) || !std::isfinite(c.merge.session_conflict_hold_s)) {
     throw ConfigError("merge.session_conflict_hold_s must be a finite number >= 0");
+  }
+  if (!(c.merge.idle_rescue_after_s >= 0.0) || !std::isfinite(c.merge.idle_rescue_after_s)) {
+    throw ConfigError("merge.idle_rescue_after_s must be a finite number >= 0");
   }
   if (!(c.merge.alignment_data_hold_s >= 0.0) || !std::isfinite(c.merge.alignment_data_hold_s)) {
     throw ConfigError("merge.alignment_data_hold_s must be a finite number >= 0");

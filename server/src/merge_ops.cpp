@@ -55,8 +55,13 @@ std::shared_ptr<const align::PreparedMap> prepare(const HeldMap& map, const alig
 }
 
 align::AlignResult align_global(const align::PreparedMap& target, const align::PreparedMap& source,
-                                const align::AlignConfig& config) {
-  return align::align(target, source, config);
+                                const align::AlignConfig& config, const align::Cancel& cancel) {
+  return align::align(target, source, config, cancel);
+}
+
+align::AlignResult align_rescue(const align::PreparedMap& target, const align::PreparedMap& source,
+                                const align::AlignConfig& config, const align::Cancel& cancel) {
+  return align::rescue(target, source, config, cancel);
 }
 
 align::AlignResult align_local(const align::PreparedMap& target, const align::PreparedMap& source,

@@ -237,21 +237,24 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
     return a.first != b.first ? !a.first : a.second->map->num_nodes() > b.second->map->num_nodes();
   });
   for (const auto& [refused, other] : order) {
-    if (hooks_.cancelled && hooks_.cancelled()) return;
+    // A search stopped by the shutdown is neither reported nor remembered as tried.
+    const align::Cancel stopping = [this] { return this->stopping(); };
+    if (stopping()) return;
     const Registry::AlignmentUse hold_target(registry_, other->robot_id);
     const auto target = prepared(other->robot_id, true);
     if (!target) continue;
     spdlog::info("merge {} <- {}: global search started", other->robot_id, rec.robot_id);
     auto t0 = std::chrono::steady_clock::now();
-    align::AlignResult res = align_global(*target, *me, config_.align);
+    align::AlignResult res = align_global(*target, *me, config_.align, stopping);
+    if (stopping()) return;
     report({other->robot_id, rec.robot_id, res.accepted, true, res.fitness, seconds_since(t0), res.reason, unix_now()});
-    if (!res.accepted && config_.merge.search_blocks_fallback && !config_.align.submodels.enabled &&
-        !(hooks_.cancelled && hooks_.cancelled())) {
+    if (!res.accepted && config_.merge.search_blocks_fallback && !config_.align.submodels.enabled) {
       align::AlignConfig blocks = config_.align;
       blocks.submodels.enabled = true;
       spdlog::info("merge {} <- {}: global search again, block by block", other->robot_id, rec.robot_id);
       t0 = std::chrono::steady_clock::now();
-      res = align_global(*target, *me, blocks);
+      res = align_global(*target, *me, blocks, stopping);
+      if (stopping()) return;
       report({other->robot_id, rec.robot_id, res.accepted, true, res.fitness, seconds_since(t0), res.reason,
               unix_now()});
     }
@@ -262,6 +265,7 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
       return;
     }
   }
+  if (!order.empty() && hooks_.more_idle_work) hooks_.more_idle_work();  // rescues of the refusals
 }
 
 bool Pipeline::worth_refining(const Edge& edge) {
@@ -391,7 +395,8 @@ void Pipeline::report(MergeReportOut r) {
 }
 
 PipelineCounters Pipeline::counters() const {
-  return {accepted_.load(), rejected_.load(), merges_.load(), extra_tried_.load(), extra_added_.load()};
+  return {accepted_.load(),    rejected_.load(),      merges_.load(),           extra_tried_.load(),
+          extra_added_.load(), rescues_tried_.load(), rescues_accepted_.load()};
 }
 
 // ---- pairs tried -------------------------------------------------------------------------
@@ -403,14 +408,20 @@ bool Pipeline::refused_before(const RobotRecord& a, const RobotRecord& b, const 
   return it != attempts_.end() && !it->second.accepted;
 }
 
-bool Pipeline::attempted(const RobotRecord& a, const RobotRecord& b, const std::string& kind) const {
+std::optional<PairAttempt> Pipeline::attempt_now(const RobotRecord& a, const RobotRecord& b,
+                                                 const std::string& kind) const {
   const auto [first_id, second_id] = ordered(a.robot_id, b.robot_id);
   std::lock_guard<std::mutex> lock(pairs_mutex_);
   const auto it = attempts_.find(first_id + "|" + second_id + "|" + kind);
-  if (it == attempts_.end()) return false;
+  if (it == attempts_.end()) return std::nullopt;
   const RobotRecord& first = a.robot_id < b.robot_id ? a : b;
   const RobotRecord& second = a.robot_id < b.robot_id ? b : a;
-  return it->second.hash_a == try_identity(first) && it->second.hash_b == try_identity(second);
+  if (it->second.hash_a != try_identity(first) || it->second.hash_b != try_identity(second)) return std::nullopt;
+  return it->second;
+}
+
+bool Pipeline::attempted(const RobotRecord& a, const RobotRecord& b, const std::string& kind) const {
+  return attempt_now(a, b, kind).has_value();
 }
 
 void Pipeline::record_attempt(const RobotRecord& a, const RobotRecord& b, const std::string& kind, bool accepted,
@@ -436,10 +447,93 @@ void Pipeline::restore_attempts(const std::vector<PairAttempt>& attempts) {
   for (const PairAttempt& a : attempts) attempts_[a.robot_a + "|" + a.robot_b + "|" + a.kind] = a;
 }
 
+// ---- idle work: rescues, then extra pairs ---------------------------------------------------
+
+Pipeline::PairClaim::~PairClaim() {
+  std::lock_guard<std::mutex> lock(pipeline_.pairs_mutex_);
+  pipeline_.in_progress_.erase(ordered(a_, b_));
+}
+
+bool Pipeline::stopping() const { return hooks_.cancelled && hooks_.cancelled(); }
+
+std::function<void()> Pipeline::next_idle_work() {
+  if (std::function<void()> job = next_rescue()) return job;
+  return next_extra_pair();
+}
+
+std::function<void()> Pipeline::next_rescue() {
+  // With align.rescue.enabled every global search ran the rescue's search already.
+  if (!config_.merge.idle_rescue || config_.align.rescue.enabled || stopping()) return {};
+  std::optional<RescuePair> pair = pick_rescue();
+  if (!pair) return {};
+  return [this, p = *pair] { run_rescue(p); };
+}
+
+std::optional<Pipeline::RescuePair> Pipeline::pick_rescue() {
+  const auto poses = registry_.poses();
+  const std::string reference = registry_.reference();
+  const double now = unix_now();
+  std::vector<std::shared_ptr<const RobotRecord>> aligned;
+  for (const auto& kv : poses) {
+    if (auto r = registry_.get(kv.first); r && r->map) aligned.push_back(r);
+  }
+  // The largest partner first, as search_unknown() orders them.
+  std::stable_sort(aligned.begin(), aligned.end(),
+                   [](const auto& a, const auto& b) { return a->map->num_nodes() > b->map->num_nodes(); });
+  for (const auto& rec : registry_.all()) {
+    if (!rec->map || rec->robot_id == reference || poses.count(rec->robot_id) != 0) continue;
+    for (const auto& other : aligned) {
+      // Only a search refused with both maps as they are now, long enough ago (a map that still
+      // grows is searched again with more data), and not as ambiguous.
+      const std::optional<PairAttempt> search = attempt_now(*rec, *other, "search");
+      if (!search || search->accepted || align::ambiguous_refusal(search->reason) ||
+          now - search->stamp_unix < config_.merge.idle_rescue_after_s)
+        continue;
+      if (attempted(*rec, *other, "rescue")) continue;
+      std::lock_guard<std::mutex> lock(pairs_mutex_);
+      if (!in_progress_.insert(ordered(rec->robot_id, other->robot_id)).second) continue;  // another worker's
+      return RescuePair{other->robot_id, rec->robot_id, other->map_revision, rec->map_revision};
+    }
+  }
+  return std::nullopt;
+}
+
+void Pipeline::run_rescue(const RescuePair& p) {
+  const PairClaim claim(*this, p.target, p.source);
+  const Registry::AlignmentUse hold_target(registry_, p.target), hold_source(registry_, p.source);
+  const auto target = prepared(p.target, true);
+  const auto source = prepared(p.source, true);
+  if (!target || !source || stopping()) return;
+  const auto current = [&] {
+    const auto t = registry_.get(p.target);
+    const auto s = registry_.get(p.source);
+    return t && s && t->map_revision == p.target_revision && s->map_revision == p.source_revision;
+  };
+  spdlog::info("merge {} <- {}: rescue: global search on denser features (the search refused it)", p.target, p.source);
+  const auto t0 = std::chrono::steady_clock::now();
+  // Given up when the server stops or a map changes (its new search comes first).
+  const align::AlignResult res = align_rescue(*target, *source, config_.align, [&] { return stopping() || !current(); });
+  if (stopping() || !current()) {
+    spdlog::info("merge {} <- {}: rescue given up after {:.1f} s: {}", p.target, p.source, seconds_since(t0),
+                 stopping() ? "the server stops" : "a map changed");
+    return;
+  }
+  report({p.target, p.source, res.accepted, true, res.fitness, seconds_since(t0),
+          "rescue" + (res.accepted ? std::string() : ": " + res.reason), unix_now()});
+  ++rescues_tried_;
+  const auto t = registry_.get(p.target);
+  const auto s = registry_.get(p.source);
+  if (!t || !s) return;
+  record_attempt(*t, *s, "rescue", res.accepted, res.reason);
+  if (!res.accepted) return;
+  ++rescues_accepted_;
+  if (accept_edge(make_edge(*t, *s, res), *t, *s)) on_new_alignment(p.source, true);
+}
+
 // ---- extra pairs (idle work) -------------------------------------------------------------
 
 std::function<void()> Pipeline::next_extra_pair() {
-  if (!config_.merge.extra_pairs || (hooks_.cancelled && hooks_.cancelled())) return {};
+  if (!config_.merge.extra_pairs || stopping()) return {};
   std::optional<ExtraPair> pair = pick_extra_pair();
   if (!pair) return {};
   return [this, p = *pair] { align_extra_pair(p); };
@@ -499,15 +593,11 @@ std::optional<Pipeline::ExtraPair> Pipeline::pick_extra_pair() {
 }
 
 void Pipeline::align_extra_pair(const ExtraPair& p) {
-  const auto done = [&] {
-    std::lock_guard<std::mutex> lock(pairs_mutex_);
-    in_progress_.erase(ordered(p.target, p.source));
-  };
-  const auto cancelled = [&] { return hooks_.cancelled && hooks_.cancelled(); };
+  const PairClaim claim(*this, p.target, p.source);
   const Registry::AlignmentUse hold_target(registry_, p.target), hold_source(registry_, p.source);
   auto target = prepared(p.target, false);
   auto source = prepared(p.source, false);
-  if (!target || !source || cancelled()) return done();
+  if (!target || !source || stopping()) return;
   char what[64];
   std::snprintf(what, sizeof what, "extra pair, estimated overlap %.2f", p.overlap);
   spdlog::info("merge {} <- {}: {}: refining from the pose estimates", p.target, p.source, what);
@@ -515,10 +605,11 @@ void Pipeline::align_extra_pair(const ExtraPair& p) {
   align::AlignResult res = align_local(*target, *source, p.T_target_source, config_.align);
   report({p.target, p.source, res.accepted, false, res.fitness, seconds_since(t0),
           std::string(what) + (res.accepted ? "" : ": " + res.reason), unix_now()});
-  if (!res.accepted && config_.merge.extra_global_fallback && !cancelled() &&
+  if (!res.accepted && config_.merge.extra_global_fallback && !stopping() &&
       (target = prepared(p.target, true)) && (source = prepared(p.source, true))) {
     t0 = std::chrono::steady_clock::now();
-    res = align_global(*target, *source, config_.align);
+    res = align_global(*target, *source, config_.align, [this] { return stopping(); });
+    if (stopping()) return;
     report({p.target, p.source, res.accepted, true, res.fitness, seconds_since(t0),
             std::string(what) + (res.accepted ? "" : ": " + res.reason), unix_now()});
   }
@@ -526,9 +617,8 @@ void Pipeline::align_extra_pair(const ExtraPair& p) {
   const auto t = registry_.get(p.target);
   const auto s = registry_.get(p.source);
   const bool current = t && s && t->map_revision == p.target_revision && s->map_revision == p.source_revision;
-  if (!current || cancelled()) return done();  // a map changed meanwhile: the pair is tried again
+  if (!current || stopping()) return;  // a map changed meanwhile: the pair is tried again
   record_attempt(*t, *s, "extra", res.accepted, res.reason);
-  done();
   if (!res.accepted) return;
   if (!accept_edge(make_edge(*t, *s, res), *t, *s)) return;
   ++extra_added_;

@@ -40,7 +40,7 @@ Server::Server(ServerConfig config) : config_(std::move(config)) {
       [this](const std::string& robot, std::optional<MapSample> map, bool retry) {
         pipeline_->process(robot, std::move(map), retry);
       },
-      [this] { return pipeline_->next_extra_pair(); }, config_.merge.extra_max_jobs,
+      [this] { return pipeline_->next_idle_work(); }, config_.merge.extra_max_jobs,
       Scheduler::Lanes{config_.merge.threads, config_.merge.merge_nice});
   DdsIo::Callbacks callbacks;
   callbacks.on_map = [this](MapSample s) { on_map(std::move(s)); };
@@ -166,8 +166,9 @@ void Server::run() {
   spdlog::info("shutting down");
   scheduler_->stop();
   const auto c = pipeline_->counters();
-  spdlog::info("pose graph: {} edges, {} rejected; extra pairs: {} tried, {} edges added", registry_.edges().size(),
-               registry_.rejected_edges().size(), c.extra_pairs_tried, c.extra_edges_added);
+  spdlog::info("pose graph: {} edges, {} rejected; extra pairs: {} tried, {} edges added; rescues: {} tried, {} accepted",
+               registry_.edges().size(), registry_.rejected_edges().size(), c.extra_pairs_tried, c.extra_edges_added,
+               c.rescues_tried, c.rescues_accepted);
 }
 
 void Server::stop() {
@@ -193,6 +194,7 @@ void Server::loop_once() {
     publish_status();
     if (store_) store_->checkpoint();  // here, not after a commit on the update path
     if (pipeline_->alignment_data_idle()) scheduler_->background(Pipeline::release_job());
+    scheduler_->kick_idle();  // rescues fall due as refusals age (merge.idle_rescue_after_s)
     if (std::exchange(trim_due_, false)) {
       // Replaced maps were freed since: give their pages back (RSS of fr_079 x2 at 1 Hz 417 ->
       // 220 MB; ~5 ms, on this loop after the publication, not on the update path).

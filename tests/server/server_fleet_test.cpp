@@ -2,10 +2,12 @@
 // participants on loopback (the `local` profile), real SQLite state, real maps cut from data/.
 
 #include <algorithm>
+#include <fstream>
 #include <set>
 #include <thread>
 
 #include "five_robots.hpp"
+#include "mapmerge/map/crop.hpp"
 #include "mapmerge/server/store.hpp"
 #include "server_fixture.hpp"
 
@@ -99,6 +101,44 @@ bool settled(FleetListener& op, std::chrono::seconds quiet, std::chrono::seconds
     }
     return std::chrono::steady_clock::now() - since >= quiet;
   }, timeout);
+}
+
+TEST_F(ServerFleet, ARobotItsSearchRefusedIsPlacedByTheRescueOnceTheRefusalIsOld) {
+  // fr_078_tidyup cut at 10 % overlap, r2 moved by a transform the server's search (whole map,
+  // then block by block) misses (Pipeline.ARobotItsSearchRefusedIsRescued...): neither robot
+  // publishes again, and the idle rescue places r2 once the refusal is 2 s old.
+  const auto room = load_data_map("fr_078_tidyup.bt");
+  const auto [first_box, second_box] = mapmerge::overlap_cut(*room, 0, 0.10);
+  const Eigen::Matrix4d T2 =
+      mapmerge::paper_transform(4.3912779496526042, 2.7838923553891979, 0.21597051103616705, 3.0275750345742836,
+                                -4.0719918969240405, 6.5349174219267923);
+  const RobotMap r1 = cut_robot_map(*room, "r1", first_box, Eigen::Matrix4d::Identity());
+  const RobotMap r2 = cut_robot_map(*room, "r2", second_box, T2);
+  const std::string config = dir + "/rescue.yaml";
+  std::ofstream(config) << "merge: {idle_rescue_after_s: 2}\n";
+  auto server = start_server({"--config", config, "--reference", "r1"});
+  FleetListener op(domain);
+  RobotPublisher p1(domain, "r1");
+  p1.publish(*r1.tree);
+  RobotPublisher p2(domain, "r2");
+  p2.publish(*r2.tree);
+  std::vector<ReceivedMerge> r2_merges;
+  const auto r2_placed = [&] {  // and its merges reported (on the next status)
+    r2_merges.clear();
+    for (const auto& m : op.merges()) {
+      if (m.source == "r2") r2_merges.push_back(m);
+    }
+    return !r2_merges.empty() && r2_merges.back().accepted && aligned(op, {"r1", "r2"}) && global_has(op, 2);
+  };
+  ASSERT_TRUE(op.wait_for(r2_placed, kMergeTimeout)) << server->log();
+  const auto pose = op.poses().at("r2");
+  EXPECT_LT(rotation_error_deg(T2.inverse(), pose.T_global_robot), kMaxRotationDeg);
+  EXPECT_LT(translation_error_m(T2.inverse(), pose.T_global_robot), kMaxTranslationM);
+  // The search refused it first; the rescue placed it.
+  ASSERT_GE(r2_merges.size(), 2u) << server->log();
+  EXPECT_FALSE(r2_merges.front().accepted) << "the search placed r2: this pair no longer shows the rescue";
+  EXPECT_TRUE(r2_merges.back().accepted);
+  EXPECT_EQ(r2_merges.back().detail, "rescue") << server->log();
 }
 
 TEST_F(ServerFleet, FiveRobotsGetAGraphWithCyclesThatSurvivesARestart) {

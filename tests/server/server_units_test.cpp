@@ -10,6 +10,7 @@
 #include <fstream>
 #include <limits>
 #include <mutex>
+#include <thread>
 
 #include <gtest/gtest.h>
 #include <sqlite3.h>
@@ -674,6 +675,12 @@ TEST(Config, ReadsSectionsAndRejectsUnknownKeys) {
 
 TEST(Config, ExtraPairSettings) {
   const ServerConfig d = parse_server_config("");
+  EXPECT_TRUE(d.merge.idle_rescue);
+  EXPECT_DOUBLE_EQ(d.merge.idle_rescue_after_s, 10.0);
+  const ServerConfig no_rescue = parse_server_config("merge: {idle_rescue: false, idle_rescue_after_s: 60}\n");
+  EXPECT_FALSE(no_rescue.merge.idle_rescue);
+  EXPECT_DOUBLE_EQ(no_rescue.merge.idle_rescue_after_s, 60.0);
+  EXPECT_THROW(parse_server_config("merge: {idle_rescue_after_s: -1}\n"), align::ConfigError);
   EXPECT_TRUE(d.merge.extra_pairs);
   EXPECT_EQ(d.merge.extra_max_jobs, 0);
   const ServerConfig c = parse_server_config(
@@ -923,6 +930,98 @@ TEST(Pipeline, AlignmentDataNoAlignmentUsesIsLetGoOfAndBuiltAgainWhenNeeded) {
   }
   EXPECT_EQ(registry.release_alignment_data(later), std::vector<std::string>{"r1"});
   EXPECT_FALSE(registry.get("r1")->prepared);
+}
+
+TEST(Pipeline, ARobotItsSearchRefusedIsRescuedOnSpareCapacityOncePerPairOfMaps) {
+  // fr_078_tidyup cut as the align bench cuts it at 10 % overlap, r2 moved by the transform of
+  // AlignPipeline.ANarrowOverlapTheFirstSearchMissesIsFoundOnDenserFeatures: the server's search
+  // (whole map, then block by block; no rescue) refuses r2, the idle rescue places it.
+  const auto room = test::load_data_map("fr_078_tidyup.bt");
+  const auto [first_box, second_box] = mapmerge::overlap_cut(*room, 0, 0.10);
+  const Eigen::Matrix4d T2 =
+      mapmerge::paper_transform(4.3912779496526042, 2.7838923553891979, 0.21597051103616705, 3.0275750345742836,
+                                -4.0719918969240405, 6.5349174219267923);
+  const test::RobotMap r1 = test::cut_robot_map(*room, "r1", first_box, Eigen::Matrix4d::Identity());
+  const test::RobotMap r2 = test::cut_robot_map(*room, "r2", second_box, T2);
+  // r3: a stretch of another building's corridor (fr_079), refused by the search and the rescue.
+  const test::RobotMap r3 =
+      test::cut_robot_map(*test::load_data_map("fr_079.bt"), "r3", box(-8, -2), Eigen::Matrix4d::Identity());
+  ServerConfig config;
+  ASSERT_TRUE(config.merge.idle_rescue);
+  ASSERT_FALSE(config.align.rescue.enabled);
+  Registry registry;
+  int kicks = 0;
+  std::atomic<bool> stopping{false};
+  Pipeline::Hooks hooks;
+  hooks.more_idle_work = [&] { ++kicks; };
+  hooks.cancelled = [&] { return stopping.load(); };
+  Pipeline pipeline(config, registry, nullptr, hooks);  // searches run inline
+  pipeline.process("r1", sample_of(r1, 1), false);
+  EXPECT_FALSE(pipeline.next_rescue()) << "nothing was refused yet";
+  pipeline.process("r2", sample_of(r2, 1), false);
+  ASSERT_EQ(registry.status("r2"), RobotStatus::kUnknown) << "the search placed r2: this pair no longer shows the rescue";
+  EXPECT_GT(kicks, 0) << "a refused search did not tell the scheduler that idle work may be there";
+  // Not while the refusal is recent (r2's map may still grow: a new search comes first).
+  ASSERT_GT(config.merge.idle_rescue_after_s, 1.0);
+  EXPECT_FALSE(pipeline.next_rescue());
+  config.merge.idle_rescue_after_s = 0.0;  // (the pipeline reads the config it was given)
+
+  // A rescue given up midway (the server stops) is neither reported nor remembered.
+  std::function<void()> job = pipeline.next_idle_work();
+  ASSERT_TRUE(job);
+  EXPECT_FALSE(pipeline.next_rescue()) << "a rescue in progress was handed out twice";
+  const std::size_t reports = pipeline.recent_merges().size();
+  std::thread running(job);
+  std::this_thread::sleep_for(300ms);  // the rescue takes seconds
+  stopping = true;
+  running.join();
+  EXPECT_EQ(registry.status("r2"), RobotStatus::kUnknown);
+  EXPECT_EQ(pipeline.counters().rescues_tried, 0U);
+  EXPECT_EQ(pipeline.recent_merges().size(), reports);
+  stopping = false;
+
+  job = pipeline.next_idle_work();
+  ASSERT_TRUE(job) << "a rescue given up was remembered as tried";
+  job();
+  ASSERT_EQ(registry.status("r2"), RobotStatus::kAligned) << pipeline.recent_merges().back().detail;
+  const Eigen::Matrix4d& T = registry.poses().at("r2").T_global_robot;
+  EXPECT_LT(test::rotation_error_deg(T2.inverse(), T), 1.0);
+  EXPECT_LT(test::translation_error_m(T2.inverse(), T), 0.1);
+  EXPECT_EQ(pipeline.recent_merges().back().detail, "rescue");
+  EXPECT_TRUE(pipeline.recent_merges().back().global_search);
+
+  pipeline.process("r3", sample_of(r3, 1), false);
+  ASSERT_EQ(registry.status("r3"), RobotStatus::kUnknown);
+  // One rescue per aligned partner, the larger map first; each refused, and not tried again
+  // while the maps stay the same (the same map republished included).
+  for (const char* partner : {"r1", "r2"}) {
+    job = pipeline.next_rescue();
+    ASSERT_TRUE(job) << partner;
+    job();
+    const MergeReportOut last = pipeline.recent_merges().back();
+    EXPECT_EQ(last.source, "r3");
+    EXPECT_FALSE(last.accepted);
+    EXPECT_EQ(last.detail.rfind("rescue: ", 0), 0U) << last.detail;
+  }
+  EXPECT_EQ(registry.status("r3"), RobotStatus::kUnknown);
+  EXPECT_FALSE(pipeline.next_rescue());
+  pipeline.process("r3", sample_of(r3, 2), false);
+  EXPECT_FALSE(pipeline.next_rescue());
+  const PipelineCounters c = pipeline.counters();
+  EXPECT_EQ(c.rescues_tried, 3U);
+  EXPECT_EQ(c.rescues_accepted, 1U);
+
+  // With the rescue in every search there is nothing left to do later.
+  ServerConfig eager;
+  eager.merge.idle_rescue_after_s = 0.0;
+  eager.align.rescue.enabled = true;
+  eager.merge.search_blocks_fallback = false;
+  Registry registry_eager;
+  Pipeline in_search(eager, registry_eager, nullptr, {});
+  in_search.process("r1", sample_of(r1, 1), false);
+  in_search.process("r3", sample_of(r3, 1), false);
+  ASSERT_EQ(registry_eager.status("r3"), RobotStatus::kUnknown);
+  EXPECT_FALSE(in_search.next_rescue());
 }
 
 TEST(GlobalMapBuilder, AGrownMapIsFusedByItsDifferenceAndEqualsAFreshBuild) {

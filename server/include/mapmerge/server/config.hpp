@@ -38,6 +38,12 @@ struct MergeConfig {
                                        ///< larger share of one block); ignored when align.submodels is on
   double refine_republish_translation = 0.02;  ///< a refinement moving a robot more than this republishes [m]
   double refine_republish_rotation_deg = 0.1;  ///< ... or turning it more than this [deg]
+  bool idle_rescue = true;           ///< on spare threads, a robot still unknown gets the rescue's search
+                                     ///< (align.rescue: denser features, ~3x a search) against each
+                                     ///< partner whose search refused it for no ambiguity, once per pair
+                                     ///< of maps (moot when align.rescue.enabled: every search has it)
+  double idle_rescue_after_s = 10.0; ///< ... once that refusal (both maps as they are now) is this old: a
+                                     ///< robot whose map still grows gets new searches instead [s]
   bool extra_pairs = true;           ///< on spare threads, align aligned robots that share no edge yet but
                                      ///< overlap (by their pose estimates), so the pose graph gets cycles
   double extra_min_overlap = 0.1;    ///< estimated share of the smaller map's occupied voxels on the

@@ -36,9 +36,13 @@ DecodedMap decode_sample(const MapSample& sample, const DecodeLimits& limits);
 std::shared_ptr<const align::PreparedMap> prepare(const HeldMap& map, const align::AlignConfig& config,
                                                   bool features, std::string& error);
 
-/// Global search for T_target_source (no initial guess).
+/// Global search for T_target_source (no initial guess); `cancel` stops it between its steps.
 align::AlignResult align_global(const align::PreparedMap& target, const align::PreparedMap& source,
-                                const align::AlignConfig& config);
+                                const align::AlignConfig& config, const align::Cancel& cancel = {});
+
+/// The rescue's global search on denser features (align::rescue), for a pair the search refused.
+align::AlignResult align_rescue(const align::PreparedMap& target, const align::PreparedMap& source,
+                                const align::AlignConfig& config, const align::Cancel& cancel = {});
 
 /// Local refinement from a known T_target_source.
 align::AlignResult align_local(const align::PreparedMap& target, const align::PreparedMap& source,

@@ -5,7 +5,9 @@
 ///   global alignment against the aligned robots, largest first).
 /// On spare capacity (Scheduler idle work): extra pairs = aligned robots that share no edge but
 /// overlap by their pose estimates, refined locally from those estimates (global search as
-/// fallback), so the fleet pose graph gets cycles. A pair is tried once per pair of maps.
+/// fallback), so the fleet pose graph gets cycles; before those, rescues = a robot still unknown
+/// searched for again against a partner that refused it, on denser features (align::rescue). A
+/// pair is tried once per pair of maps.
 
 #include <atomic>
 #include <cstdint>
@@ -34,6 +36,8 @@ struct PipelineCounters {
   std::uint64_t merges_run = 0;
   std::uint64_t extra_pairs_tried = 0;   ///< extra pairs aligned (refine, maybe global) [count]
   std::uint64_t extra_edges_added = 0;   ///< of which accepted: edges beyond what placing needed [count]
+  std::uint64_t rescues_tried = 0;       ///< rescue searches run (merge.idle_rescue) [count]
+  std::uint64_t rescues_accepted = 0;    ///< of which accepted [count]
 };
 
 class Pipeline {
@@ -73,9 +77,14 @@ class Pipeline {
   bool restore(const MapSample& map);
   /// Installs the pairs tried before a restart (not tried again while their maps are the same).
   void restore_attempts(const std::vector<PairAttempt>& attempts);
-  /// Idle work for the scheduler: aligns the best extra pair (largest estimated overlap), or an
-  /// empty function when there is none. Thread-safe; a pair is handed out once at a time.
+  /// Idle work for the scheduler: a rescue (merge.idle_rescue) if one is due, else the best extra
+  /// pair (largest estimated overlap), or an empty function when there is neither. Thread-safe; a
+  /// pair is handed out once at a time.
+  std::function<void()> next_idle_work();
+  /// The extra pair part of next_idle_work() alone.
   std::function<void()> next_extra_pair();
+  /// The rescue part of next_idle_work() alone.
+  std::function<void()> next_rescue();
 
   PipelineCounters counters() const;
   std::vector<MergeReportOut> recent_merges() const;
@@ -122,7 +131,32 @@ class Pipeline {
   std::optional<ExtraPair> pick_extra_pair();
   double cached_overlap(const RobotRecord& target, const RobotRecord& source, const Eigen::Matrix4d& T_target_source);
   void align_extra_pair(const ExtraPair& pair);
-  /// A try of (a, b) of this kind ("search", "extra") with both maps as they are now is on record.
+  /// True once the server shuts down (Hooks::cancelled).
+  bool stopping() const;
+  /// A pair picked for idle work (in in_progress_, where pick_rescue / pick_extra_pair put it):
+  /// handed back when the work ends, however it ends.
+  class PairClaim {
+   public:
+    PairClaim(Pipeline& pipeline, std::string a, std::string b)
+        : pipeline_(pipeline), a_(std::move(a)), b_(std::move(b)) {}
+    ~PairClaim();
+    PairClaim(const PairClaim&) = delete;
+    PairClaim& operator=(const PairClaim&) = delete;
+
+   private:
+    Pipeline& pipeline_;
+    std::string a_, b_;
+  };
+  /// A rescue: `target` (aligned) <- `source` (unknown), as their maps were when it was picked.
+  struct RescuePair {
+    std::string target, source;
+    std::uint64_t target_revision = 0, source_revision = 0;
+  };
+  std::optional<RescuePair> pick_rescue();
+  void run_rescue(const RescuePair& pair);
+  /// The try of (a, b) of this kind with both maps as they are now, if one is on record.
+  std::optional<PairAttempt> attempt_now(const RobotRecord& a, const RobotRecord& b, const std::string& kind) const;
+  /// A try of (a, b) of this kind ("search", "extra", "rescue") with both maps as they are now is on record.
   bool attempted(const RobotRecord& a, const RobotRecord& b, const std::string& kind) const;
   /// Whether a try of this kind between the two robots, with any of their maps, was refused last.
   bool refused_before(const RobotRecord& a, const RobotRecord& b, const std::string& kind) const;
@@ -133,7 +167,8 @@ class Pipeline {
   Registry& registry_;
   Store* store_;
   Hooks hooks_;
-  std::atomic<std::uint64_t> accepted_{0}, rejected_{0}, merges_{0}, extra_tried_{0}, extra_added_{0};
+  std::atomic<std::uint64_t> accepted_{0}, rejected_{0}, merges_{0}, extra_tried_{0}, extra_added_{0},
+      rescues_tried_{0}, rescues_accepted_{0};
   std::mutex alignment_mutex_;  ///< one edge set written and installed at a time; guards edge_basis_
   /// Per accepted edge (target, source): the node counts of the two maps it was aligned on.
   std::map<std::pair<std::string, std::string>, std::pair<std::size_t, std::size_t>> edge_basis_;
@@ -146,7 +181,7 @@ class Pipeline {
   };
   mutable std::mutex pairs_mutex_;  ///< guards the three below
   std::map<std::string, PairAttempt> attempts_;  ///< by "robot_a|robot_b|kind", a < b
-  std::set<std::pair<std::string, std::string>> in_progress_;            ///< extra pairs being aligned
+  std::set<std::pair<std::string, std::string>> in_progress_;            ///< extra pairs and rescues being aligned
   std::map<std::pair<std::string, std::string>, OverlapEstimate> overlaps_;  ///< by (target, source)
   mutable std::mutex reports_mutex_;
   std::deque<MergeReportOut> reports_;

@@ -40,8 +40,9 @@ struct EdgeVerdict {
 struct PairAttempt {
   std::string robot_a;
   std::string robot_b;
-  std::string kind;        ///< "search" (global, placing an unknown robot) or "extra" (refine from
-                           ///< the pose estimates, global search as fallback)
+  std::string kind;        ///< "search" (global, placing an unknown robot), "rescue" (the search
+                           ///< again on denser features, idle work) or "extra" (refine from the
+                           ///< pose estimates, global search as fallback)
   std::uint64_t hash_a = 0;
   std::uint64_t hash_b = 0;
   bool accepted = false;
