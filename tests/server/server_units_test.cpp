@@ -984,7 +984,7 @@ TEST(Pipeline, ARobotItsSearchRefusedIsRescuedOnSpareCapacityOncePerPairOfMaps) 
   ASSERT_TRUE(job) << "a rescue given up was remembered as tried";
   job();
   ASSERT_EQ(registry.status("r2"), RobotStatus::kAligned) << pipeline.recent_merges().back().detail;
-  const Eigen::Matrix4d& T = registry.poses().at("r2").T_global_robot;
+  const Eigen::Matrix4d T = registry.poses().at("r2").T_global_robot;  // (poses() is a copy)
   EXPECT_LT(test::rotation_error_deg(T2.inverse(), T), 1.0);
   EXPECT_LT(test::translation_error_m(T2.inverse(), T), 0.1);
   EXPECT_EQ(pipeline.recent_merges().back().detail, "rescue");
