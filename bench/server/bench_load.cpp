@@ -232,7 +232,7 @@ int main(int argc, char** argv) {
   app.add_option("--robots", o.robots, "fleet size")->check(CLI::Range(2, 64));
   app.add_option("--duration", o.duration_s, "publishing time [s]")->check(CLI::PositiveNumber);
   app.add_option("--period", o.period_s, "each robot publishes this often [s]")->check(CLI::PositiveNumber);
-  app.add_option("--map", o.map, "map in data/");
+  app.add_option("--map", o.map, "map in data/")->check(CLI::Validator(mt::data_map_problem, "FILE in data/"));
   app.add_option("--window-share", o.window_share, "share of the map's length each robot sees");
   app.add_option("--variants", o.variants, "maps per robot published in turn")->check(CLI::Range(1, 16));
   app.add_option("--sample", o.sample_s, "RSS sampling period [s]")->check(CLI::PositiveNumber);

@@ -278,7 +278,7 @@ int main(int argc, char** argv) {
   CLI::App app{"mapmerge-server end-to-end bench (loopback, real server process)"};
   Options o;
   app.add_option("--robots", o.robots, "fleet sizes")->delimiter(',');
-  app.add_option("--map", o.map, "map in data/");
+  app.add_option("--map", o.map, "map in data/")->check(CLI::Validator(mt::data_map_problem, "FILE in data/"));
   app.add_option("--domain", o.domain, "DDS domain")->check(CLI::Range(0, 101));
   app.add_option("--updates", o.updates, "incremental updates measured per fleet size");
   app.add_option("--timeout", o.timeout_s, "seconds to wait for the whole fleet to be merged");

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
+#include <fstream>
 #include <set>
 
 #include <unistd.h>
@@ -27,6 +28,12 @@ RobotMap cut_robot_map(const octomap::OcTree& world, const std::string& id, cons
 
 std::shared_ptr<const octomap::OcTree> load_data_map(const std::string& name) {
   return read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/" + name);
+}
+
+std::string data_map_problem(const std::string& name) {
+  const std::string path = std::string(MAPMERGE_DATA_DIR) + "/" + name;
+  if (std::ifstream(path).good()) return "";
+  return "no map " + path + " (give the name of a file in data/, e.g. fr_079.bt)";
 }
 
 RobotPublisher::RobotPublisher(int domain, const std::string& id, const wire::ProfileSpec& profile,

@@ -29,6 +29,8 @@ struct RobotMap {
 RobotMap cut_robot_map(const octomap::OcTree& world, const std::string& id, const Eigen::AlignedBox3d& box,
                        const Eigen::Matrix4d& T_robot_world);
 std::shared_ptr<const octomap::OcTree> load_data_map(const std::string& name);
+/// Why load_data_map(name) cannot work (no such file in data/), or "" (a CLI11 check for benches).
+std::string data_map_problem(const std::string& name);
 
 /// A robot publishing native MapUpdates on rt/<id>/mapmerge/map.
 class RobotPublisher {
