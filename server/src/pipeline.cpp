@@ -236,16 +236,16 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
   std::stable_sort(order.begin(), order.end(), [](const auto& a, const auto& b) {
     return a.first != b.first ? !a.first : a.second->map->num_nodes() > b.second->map->num_nodes();
   });
+  // A search stopped by the shutdown is neither reported nor remembered as tried.
+  const align::Cancel on_shutdown = [this] { return stopping(); };
   for (const auto& [refused, other] : order) {
-    // A search stopped by the shutdown is neither reported nor remembered as tried.
-    const align::Cancel stopping = [this] { return this->stopping(); };
     if (stopping()) return;
     const Registry::AlignmentUse hold_target(registry_, other->robot_id);
     const auto target = prepared(other->robot_id, true);
     if (!target) continue;
     spdlog::info("merge {} <- {}: global search started", other->robot_id, rec.robot_id);
     auto t0 = std::chrono::steady_clock::now();
-    align::AlignResult res = align_global(*target, *me, config_.align, stopping);
+    align::AlignResult res = align_global(*target, *me, config_.align, on_shutdown);
     if (stopping()) return;
     report({other->robot_id, rec.robot_id, res.accepted, true, res.fitness, seconds_since(t0), res.reason, unix_now()});
     if (!res.accepted && config_.merge.search_blocks_fallback && !config_.align.submodels.enabled) {
@@ -253,7 +253,7 @@ void Pipeline::search_unknown(const RobotRecord& rec) {
       blocks.submodels.enabled = true;
       spdlog::info("merge {} <- {}: global search again, block by block", other->robot_id, rec.robot_id);
       t0 = std::chrono::steady_clock::now();
-      res = align_global(*target, *me, blocks, stopping);
+      res = align_global(*target, *me, blocks, on_shutdown);
       if (stopping()) return;
       report({other->robot_id, rec.robot_id, res.accepted, true, res.fitness, seconds_since(t0), res.reason,
               unix_now()});
@@ -456,6 +456,13 @@ Pipeline::PairClaim::~PairClaim() {
 
 bool Pipeline::stopping() const { return hooks_.cancelled && hooks_.cancelled(); }
 
+std::optional<Pipeline::RecordPair> Pipeline::current_records(const PairJob& job) const {
+  auto t = registry_.get(job.target);
+  auto s = registry_.get(job.source);
+  if (!t || !s || t->map_revision != job.target_revision || s->map_revision != job.source_revision) return std::nullopt;
+  return RecordPair{std::move(t), std::move(s)};
+}
+
 std::function<void()> Pipeline::next_idle_work() {
   if (std::function<void()> job = next_rescue()) return job;
   return next_extra_pair();
@@ -464,12 +471,12 @@ std::function<void()> Pipeline::next_idle_work() {
 std::function<void()> Pipeline::next_rescue() {
   // With align.rescue.enabled every global search ran the rescue's search already.
   if (!config_.merge.idle_rescue || config_.align.rescue.enabled || stopping()) return {};
-  std::optional<RescuePair> pair = pick_rescue();
+  std::optional<PairJob> pair = pick_rescue();
   if (!pair) return {};
   return [this, p = *pair] { run_rescue(p); };
 }
 
-std::optional<Pipeline::RescuePair> Pipeline::pick_rescue() {
+std::optional<Pipeline::PairJob> Pipeline::pick_rescue() {
   const auto poses = registry_.poses();
   const std::string reference = registry_.reference();
   const double now = unix_now();
@@ -492,38 +499,33 @@ std::optional<Pipeline::RescuePair> Pipeline::pick_rescue() {
       if (attempted(*rec, *other, "rescue")) continue;
       std::lock_guard<std::mutex> lock(pairs_mutex_);
       if (!in_progress_.insert(ordered(rec->robot_id, other->robot_id)).second) continue;  // another worker's
-      return RescuePair{other->robot_id, rec->robot_id, other->map_revision, rec->map_revision};
+      return PairJob{other->robot_id, rec->robot_id, other->map_revision, rec->map_revision};
     }
   }
   return std::nullopt;
 }
 
-void Pipeline::run_rescue(const RescuePair& p) {
+void Pipeline::run_rescue(const PairJob& p) {
   const PairClaim claim(*this, p.target, p.source);
   const Registry::AlignmentUse hold_target(registry_, p.target), hold_source(registry_, p.source);
   const auto target = prepared(p.target, true);
   const auto source = prepared(p.source, true);
   if (!target || !source || stopping()) return;
-  const auto current = [&] {
-    const auto t = registry_.get(p.target);
-    const auto s = registry_.get(p.source);
-    return t && s && t->map_revision == p.target_revision && s->map_revision == p.source_revision;
-  };
   spdlog::info("merge {} <- {}: rescue: global search on denser features (the search refused it)", p.target, p.source);
   const auto t0 = std::chrono::steady_clock::now();
   // Given up when the server stops or a map changes (its new search comes first).
-  const align::AlignResult res = align_rescue(*target, *source, config_.align, [&] { return stopping() || !current(); });
-  if (stopping() || !current()) {
+  const align::AlignResult res =
+      align_rescue(*target, *source, config_.align, [&] { return stopping() || !current_records(p); });
+  const auto records = current_records(p);
+  if (stopping() || !records) {
     spdlog::info("merge {} <- {}: rescue given up after {:.1f} s: {}", p.target, p.source, seconds_since(t0),
-                 stopping() ? "the server stops" : "a map changed");
+                 records ? "the server stops" : "a map changed");
     return;
   }
   report({p.target, p.source, res.accepted, true, res.fitness, seconds_since(t0),
           "rescue" + (res.accepted ? std::string() : ": " + res.reason), unix_now()});
   ++rescues_tried_;
-  const auto t = registry_.get(p.target);
-  const auto s = registry_.get(p.source);
-  if (!t || !s) return;
+  const auto& [t, s] = *records;
   record_attempt(*t, *s, "rescue", res.accepted, res.reason);
   if (!res.accepted) return;
   ++rescues_accepted_;
@@ -583,7 +585,7 @@ std::optional<Pipeline::ExtraPair> Pipeline::pick_extra_pair() {
       const Eigen::Matrix4d T = rigid_inverse(poses.at(t.robot_id).T_global_robot) * poses.at(s.robot_id).T_global_robot;
       const double overlap = cached_overlap(t, s, T);
       if (overlap < config_.merge.extra_min_overlap || (best && best->overlap >= overlap)) continue;
-      best = ExtraPair{t.robot_id, s.robot_id, t.map_revision, s.map_revision, t.content_hash, s.content_hash, T, overlap};
+      best = ExtraPair{{t.robot_id, s.robot_id, t.map_revision, s.map_revision}, t.content_hash, s.content_hash, T, overlap};
     }
   }
   if (!best) return std::nullopt;
@@ -614,10 +616,9 @@ void Pipeline::align_extra_pair(const ExtraPair& p) {
             std::string(what) + (res.accepted ? "" : ": " + res.reason), unix_now()});
   }
   ++extra_tried_;
-  const auto t = registry_.get(p.target);
-  const auto s = registry_.get(p.source);
-  const bool current = t && s && t->map_revision == p.target_revision && s->map_revision == p.source_revision;
-  if (!current || stopping()) return;  // a map changed meanwhile: the pair is tried again
+  const auto records = current_records(p);
+  if (!records || stopping()) return;  // a map changed meanwhile: the pair is tried again
+  const auto& [t, s] = *records;
   record_attempt(*t, *s, "extra", res.accepted, res.reason);
   if (!res.accepted) return;
   if (!accept_edge(make_edge(*t, *s, res), *t, *s)) return;

@@ -436,6 +436,7 @@ std::size_t fine_samples(const ValidateConfig& c) { return c.coarse_points * 2; 
 
 constexpr const char* kAmbiguous = "ambiguous";
 constexpr const char* kCancelled = "cancelled";
+constexpr const char* kNoFeatures = "a map was prepared without features (prepare_for_refine)";
 
 /// Sorts refined candidates by score; empty string when the best passes every test and no
 /// distinct alternative comes close (repetitive corridors, symmetric rooms), else the reason.
@@ -546,7 +547,7 @@ AlignResult search(const PreparedMap::Impl& target, const PreparedMap::Impl& sou
     return result;
   };
   const auto cancelled = [&] { return cancel && cancel(); };
-  if (!source.keypoints || !target.keypoints) return finish("a map was prepared without features (prepare_for_refine)");
+  if (!source.keypoints || !target.keypoints) return finish(kNoFeatures);
   if (source.keypoints->size() < 3 || target.keypoints->size() < 3)
     return finish("too few keypoints (target " + std::to_string(target.keypoints->size()) +
                   ", source " + std::to_string(source.keypoints->size()) + ")");
@@ -670,7 +671,7 @@ AlignResult rescue(const PreparedMap& target_map, const PreparedMap& source_map,
   const PreparedMap::Impl& source = source_map.impl();
   if (!has_keypoints(target) || !has_keypoints(source)) {
     AlignResult r;
-    r.reason = "a map was prepared without features (prepare_for_refine)";
+    r.reason = kNoFeatures;
     return r;
   }
   AlignResult r = dense_search(target, source, cfg, cancel);

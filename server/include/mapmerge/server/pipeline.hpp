@@ -121,9 +121,15 @@ class Pipeline {
   void persist_edges();
 
   /// An extra pair: target (the larger map) <- source, with the pose estimates' T_target_source.
-  struct ExtraPair {
+  /// Idle work on a pair: target <- source, as their maps were when it was picked.
+  struct PairJob {
     std::string target, source;
     std::uint64_t target_revision = 0, source_revision = 0;
+  };
+  using RecordPair = std::pair<std::shared_ptr<const RobotRecord>, std::shared_ptr<const RobotRecord>>;
+  /// The job's target and source records, if both maps are still the ones it was picked with.
+  std::optional<RecordPair> current_records(const PairJob& job) const;
+  struct ExtraPair : PairJob {
     std::size_t target_hash = 0, source_hash = 0;
     Eigen::Matrix4d T_target_source = Eigen::Matrix4d::Identity();
     double overlap = 0.0;
@@ -147,13 +153,9 @@ class Pipeline {
     Pipeline& pipeline_;
     std::string a_, b_;
   };
-  /// A rescue: `target` (aligned) <- `source` (unknown), as their maps were when it was picked.
-  struct RescuePair {
-    std::string target, source;
-    std::uint64_t target_revision = 0, source_revision = 0;
-  };
-  std::optional<RescuePair> pick_rescue();
-  void run_rescue(const RescuePair& pair);
+  /// A rescue: `target` (aligned) <- `source` (unknown).
+  std::optional<PairJob> pick_rescue();
+  void run_rescue(const PairJob& pair);
   /// The try of (a, b) of this kind with both maps as they are now, if one is on record.
   std::optional<PairAttempt> attempt_now(const RobotRecord& a, const RobotRecord& b, const std::string& kind) const;
   /// A try of (a, b) of this kind ("search", "extra", "rescue") with both maps as they are now is on record.
