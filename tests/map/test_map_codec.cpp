@@ -114,6 +114,40 @@ TEST_P(RealMap, DecodedTreeEqualsOctomapsOwnReaderNodeForNode) {
   EXPECT_EQ(bounds(*decoded.tree), bounds(reference));
 }
 
+TEST_P(RealMap, DecodedFullFormatTreeEqualsOctomapsOwnReaderNodeForNode) {
+  // A `.ot` body keeps every node's log-odds, inner nodes as stored: give the leaves values of
+  // their own (not only the two clamping bounds a `.bt` body knows) and keep the inner ones.
+  std::unique_ptr<octomap::OcTree> tree = decode_bt(file_bytes(GetParam())).tree;
+  ASSERT_TRUE(tree);
+  float step = 0.0F;
+  for (auto it = tree->begin_leafs(); it != tree->end_leafs(); ++it) {
+    it->setLogOdds(it->getLogOdds() * (0.25F + std::fmod(step += 0.37F, 1.0F)));
+  }
+  const auto full = encode_map(*tree, Encoding::kOctomapOt);
+  const DecodeResult decoded = decode_map(full, Encoding::kOctomapOt, DecodeLimits{});
+  ASSERT_TRUE(decoded.ok()) << decoded.reason;
+  octomap::OcTree reference(tree->getResolution());
+  std::istringstream in(as_string(full).substr(body_offset(full)));
+  ASSERT_TRUE(reference.readData(in));
+  ASSERT_EQ(decoded.tree->size(), reference.size());
+  ASSERT_EQ(decoded.tree->size(), reference.calcNumNodes());
+  auto a = decoded.tree->begin_tree(), b = reference.begin_tree();
+  std::size_t nodes = 0, fractional = 0;
+  for (; a != decoded.tree->end_tree() && b != reference.end_tree(); ++a, ++b, ++nodes) {
+    ASSERT_EQ(a.getKey(), b.getKey()) << "node " << nodes;
+    ASSERT_EQ(a.getDepth(), b.getDepth()) << "node " << nodes;
+    ASSERT_EQ(a.isLeaf(), b.isLeaf()) << "node " << nodes;
+    ASSERT_EQ(a->getLogOdds(), b->getLogOdds()) << "node " << nodes;
+    fractional += a.isLeaf() && a->getLogOdds() != tree->getClampingThresMaxLog() &&
+                  a->getLogOdds() != tree->getClampingThresMinLog();
+  }
+  EXPECT_TRUE(a == decoded.tree->end_tree() && b == reference.end_tree());
+  EXPECT_EQ(nodes, reference.size());
+  EXPECT_GT(fractional, nodes / 4);  // the values are the file's, not the bounds
+  // Written again, the same bytes.
+  EXPECT_EQ(encode_map(*decoded.tree, Encoding::kOctomapOt), full);
+}
+
 TEST_P(RealMap, ZstdRoundTripIsByteIdenticalAndSmaller) {
   const auto bytes = file_bytes(GetParam());
   const auto tree = decode_bt(bytes).tree;
