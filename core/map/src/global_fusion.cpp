@@ -408,6 +408,21 @@ void apply_in_tree_order(std::vector<PendingAdd>& adds, Add&& add) {
   adds.clear();
 }
 
+/// One leaf of a map's octree, as add_full() reads it.
+struct TreeLeaf {
+  Eigen::Vector3d centre;
+  double size = 0.0;
+  float log_odds = 0.0F;
+};
+
+/// Calls `leaf` with every leaf of `tree`, in the order of its leaf iterator.
+template <class Leaf>
+void for_each_tree_leaf(const octomap::OcTree& tree, Leaf&& leaf) {
+  for (auto it = tree.begin_leafs(), end = tree.end_leafs(); it != end; ++it) {
+    leaf(TreeLeaf{Eigen::Vector3d(it.getX(), it.getY(), it.getZ()), it.getSize(), it->getLogOdds()});
+  }
+}
+
 /// Fewer cubes than this are placed on the calling thread (a thread start costs more).
 constexpr std::size_t kParallelCubes = 2048;
 
@@ -486,6 +501,12 @@ void map_cubes(detail::SumTree& sums, const Eigen::Matrix4d& T, double res, cons
 
 }  // namespace
 
+struct GlobalFusion::StagedLeaves {
+  std::shared_ptr<const HeldMap> map;
+  double work = 0.0;  ///< estimate_work() of the map
+  std::vector<TreeLeaf> leaves;
+};
+
 GlobalFusion::GlobalFusion(double resolution, const FuseConfig& config)
     : resolution_(resolution), config_(config) {
   if (!(resolution > 0.0) || !std::isfinite(resolution)) {
@@ -497,6 +518,22 @@ GlobalFusion::GlobalFusion(double resolution, const FuseConfig& config)
 }
 
 void GlobalFusion::set_threads(unsigned threads) { threads_ = std::max(1U, threads); }
+
+void GlobalFusion::stage(std::shared_ptr<const HeldMap> map) {
+  staged_.reset();
+  if (!map || walkable_body(*map, resolution_)) return;  // its body is read in one pass anyway
+  auto staged = std::make_unique<StagedLeaves>();
+  const std::shared_ptr<const octomap::OcTree> tree = map->tree();
+  staged->work = detail::estimate_work(*tree, resolution_, config_.fuse_free);
+  for_each_tree_leaf(*tree, [&](const TreeLeaf& leaf) { staged->leaves.push_back(leaf); });
+  staged->map = std::move(map);
+  staged_ = std::move(staged);
+}
+
+std::unique_ptr<GlobalFusion::StagedLeaves> GlobalFusion::take_staged(const HeldMap& map) {
+  if (!staged_ || staged_->map.get() != &map) return nullptr;
+  return std::move(staged_);
+}
 
 GlobalFusion::~GlobalFusion() = default;
 
@@ -599,7 +636,7 @@ void GlobalFusion::move_step(Entry& entry, std::size_t step, GlobalFuseResult& s
 }
 
 void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stats, bool body_checked,
-                            Eigen::AlignedBox3d* extent) {
+                            Eigen::AlignedBox3d* extent, const StagedLeaves* staged) {
   if (entry.T_to) {  // halfway through a move in steps: each part at its pose
     add_leaves(*entry.map, 0, entry.moved, {{&*entry.T_to, sign}}, stats);
     add_leaves(*entry.map, entry.moved, SIZE_MAX, {{&entry.T_global_robot, sign}}, stats);
@@ -626,25 +663,26 @@ void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stat
     stats.block_updates += counts.block_updates;
     return;
   }
-  const std::shared_ptr<const octomap::OcTree> tree = entry.map->tree();
-  const octomap::OcTree& map = *tree;
   FineVotes fine;
-  for (auto it = map.begin_leafs(), end = map.end_leafs(); it != end; ++it) {
-    const float v = it->getLogOdds();
-    const std::int64_t e = evidence(v, config_);
-    if (e == 0) continue;
-    const Eigen::Vector3d c(it.getX(), it.getY(), it.getZ());
-    if (it.getSize() >= resolution_ * (1 - 1e-9)) {
-      add({c, it.getSize(), sign * e});
-      continue;
+  const auto place = [&](const TreeLeaf& leaf) {
+    const std::int64_t e = evidence(leaf.log_odds, config_);
+    if (e == 0) return;
+    if (leaf.size >= resolution_ * (1 - 1e-9)) {
+      add({leaf.centre, leaf.size, sign * e});
+      return;
     }
     ++stats.cubes;  // a leaf finer than the grid: voted per voxel
-    if (extent) grow(*extent, c, it.getSize());
-    const Eigen::Vector3d ct = T.topLeftCorner<3, 3>() * c + T.topRightCorner<3, 1>();
+    if (extent) grow(*extent, leaf.centre, leaf.size);
+    const Eigen::Vector3d ct = T.topLeftCorner<3, 3>() * leaf.centre + T.topRightCorner<3, 1>();
     octomap::OcTreeKey key;
-    if (!sums_->coordToKeyChecked(ct.x(), ct.y(), ct.z(), key)) continue;
-    auto [vote, inserted] = fine.try_emplace(key, v);
-    if (!inserted) vote->second = std::max(vote->second, v);
+    if (!sums_->coordToKeyChecked(ct.x(), ct.y(), ct.z(), key)) return;
+    auto [vote, inserted] = fine.try_emplace(key, leaf.log_odds);
+    if (!inserted) vote->second = std::max(vote->second, leaf.log_odds);
+  };
+  if (staged) {
+    for (const TreeLeaf& leaf : staged->leaves) place(leaf);
+  } else {
+    for_each_tree_leaf(*entry.map->tree(), place);
   }
   map_cubes(*sums_, T, resolution_, run, threads_, counts);
   for (const auto& [key, v] : fine) sums_->add(key, 0, sign * evidence(v, config_));
@@ -716,6 +754,7 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
     return r;
   }
   Entry next{std::move(map), T_global_robot, Eigen::AlignedBox3d(), std::nullopt, 0};
+  const std::unique_ptr<StagedLeaves> staged = take_staged(*next.map);
   const auto it = robots_.find(robot);
   if (it != robots_.end() && it->second.T_to) {
     // A move in steps under way: its next step, or (another map or pose) its end at once.
@@ -755,7 +794,7 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
     const auto t0 = std::chrono::steady_clock::now();
     double work = 0.0;
     const bool body = whole_body(*next.map, false, resolution_, config_, nullptr, work);
-    if (!body) work = detail::estimate_work(*next.map->tree(), resolution_, config_.fuse_free);
+    if (!body) work = staged ? staged->work : detail::estimate_work(*next.map->tree(), resolution_, config_.fuse_free);
     r.work = work;
     r.diff_s += seconds_since(t0);
     r.ok = work <= config_.max_work;
@@ -772,7 +811,7 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
       const auto t1 = std::chrono::steady_clock::now();
       if (it != robots_.end()) add_full(it->second, -1, r);
       next.extent.setEmpty();
-      add_full(next, +1, r, body, &next.extent);
+      add_full(next, +1, r, body, &next.extent, staged.get());
       r.place_s += seconds_since(t1);
     }
   }

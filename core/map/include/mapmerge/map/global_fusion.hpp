@@ -109,6 +109,12 @@ class GlobalFusion {
   GlobalFuseResult set(const std::string& robot, std::shared_ptr<const octomap::OcTree> map,
                        const Eigen::Matrix4d& T_global_robot,
                        std::shared_ptr<const std::vector<std::uint8_t>> binary_body = nullptr);
+  /// Reads `map`'s leaves and their fusion work ahead of a set() of that map, so that set() only
+  /// places them: e.g. while the map's pose is still being found. Only a map without a checked
+  /// binary body gains (its octree is walked here, not in set(); a body is read in one pass over
+  /// bytes anyway, so for it this does nothing). Keeps one map's leaves (~40 B a leaf) until the
+  /// set() of that map, or the next stage().
+  void stage(std::shared_ptr<const HeldMap> map);
   /// Threads set() and encode() may work on at once (default: one per core, at most 4; 1: the
   /// calling thread only). The sums and the bytes do not depend on it.
   void set_threads(unsigned threads);
@@ -167,6 +173,8 @@ class GlobalFusion {
   std::size_t memory_usage() const;
 
  private:
+  /// stage()'s leaves, for set() of their map.
+  struct StagedLeaves;
   struct Entry {
     std::shared_ptr<const HeldMap> map;
     Eigen::Matrix4d T_global_robot;
@@ -194,14 +202,18 @@ class GlobalFusion {
   /// fuses_by_difference() for the robot's entry.
   bool same_grid(const Entry& fused, const HeldMap& map) const;
   /// `body_checked`: the entry's binary body was just scanned whole (as in set()): not again.
-  /// `extent`: grown by every cube placed (null: not kept).
+  /// `extent`: grown by every cube placed (null: not kept). `staged`: the entry map's leaves,
+  /// read by stage() (null: its tree is walked).
   void add_full(const Entry& entry, int sign, GlobalFuseResult& stats, bool body_checked = false,
-                Eigen::AlignedBox3d* extent = nullptr);
+                Eigen::AlignedBox3d* extent = nullptr, const StagedLeaves* staged = nullptr);
   enum class Difference { kPlaced, kRefused, kTooFar };
   /// Places what changed from `before` to `after` at `after`'s pose, or at `before`'s when
   /// `keep_pose_within` > 0 and the poses are that close over the leaves (then `after` gets
   /// before's pose). kTooFar: the poses differ and are not that close (nothing placed).
   Difference add_difference(const Entry& before, Entry& after, double keep_pose_within, GlobalFuseResult& stats);
+
+  /// The staged leaves of `map`, taken out (null when another map or none is staged).
+  std::unique_ptr<StagedLeaves> take_staged(const HeldMap& map);
 
   double resolution_;
   FuseConfig config_;
@@ -209,6 +221,7 @@ class GlobalFusion {
   std::unique_ptr<detail::SumTree> sums_;
   std::unique_ptr<detail::EncodedBlocks> encoded_;  ///< the last encode()'s blocks
   std::map<std::string, Entry> robots_;
+  std::unique_ptr<StagedLeaves> staged_;
 };
 
 }  // namespace mapmerge
