@@ -6,6 +6,7 @@
 #include <unordered_set>
 
 #include <Eigen/Geometry>
+#include <tbb/parallel_for.h>
 #include <pcl/recognition/cg/geometric_consistency.h>
 // Instantiated here: the precompiled one lives in libpcl_recognition, which pulls in pcl_io and VTK.
 #include <pcl/recognition/impl/cg/geometric_consistency.hpp>
@@ -145,6 +146,60 @@ class SeenSets {
   std::unordered_set<std::vector<int>, Hash> seen_;
 };
 
+/// Sampled triples of correspondences, tried in batches: each triple's fit and consensus set,
+/// and each new set's least-squares fit and score, are computed on all cores, then kept in the
+/// order the triples were drawn. The hypotheses are those of trying them one after another.
+class Trials {
+ public:
+  /// `keep(T, consensus)` receives each hypothesis (a consensus set seen the first time).
+  Trials(const Pairs& p, double tol, std::size_t min_consensus, SeenSets& seen)
+      : p_(p), tol_(tol), min_consensus_(min_consensus), seen_(seen) {}
+
+  /// Adds a triple; tries the batch when it is full.
+  template <class Keep>
+  void add(const std::array<int, 3>& triple, Keep&& keep) {
+    triples_.push_back(triple);
+    if (triples_.size() >= kBatch) flush(keep);
+  }
+
+  /// Tries the triples added so far.
+  template <class Keep>
+  void flush(Keep&& keep) {
+    const std::size_t n = triples_.size();
+    sets_.resize(n);
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 8), [&](const tbb::blocked_range<std::size_t>& r) {
+      for (std::size_t i = r.begin(); i < r.end(); ++i) {
+        const std::array<int, 3>& t = triples_[i];
+        sets_[i] = consensus_of(p_, fit(p_, {t[0], t[1], t[2]}), tol_);
+      }
+    });
+    fresh_.clear();
+    for (std::size_t i = 0; i < n; ++i) {
+      if (sets_[i].size() >= min_consensus_ && seen_.first(sets_[i])) fresh_.push_back(i);
+    }
+    fitted_.resize(fresh_.size());
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, fresh_.size(), 4), [&](const tbb::blocked_range<std::size_t>& r) {
+      for (std::size_t k = r.begin(); k < r.end(); ++k) {
+        const Eigen::Matrix4d T_ls = fit(p_, sets_[fresh_[k]]);  // least squares over the consensus
+        fitted_[k] = {T_ls, consensus_count(p_, T_ls, tol_)};
+      }
+    });
+    for (const auto& [T, consensus] : fitted_) keep(T, consensus);
+    triples_.clear();
+  }
+
+ private:
+  static constexpr std::size_t kBatch = 256;
+  const Pairs& p_;
+  double tol_;
+  std::size_t min_consensus_;
+  SeenSets& seen_;
+  std::vector<std::array<int, 3>> triples_;
+  std::vector<std::vector<int>> sets_;
+  std::vector<std::size_t> fresh_;
+  std::vector<std::pair<Eigen::Matrix4d, std::size_t>> fitted_;
+};
+
 /// Keeps the `max` best distinct hypotheses (by consensus).
 void keep_best(std::vector<Hypothesis>& best, Hypothesis h, std::size_t max, double rot,
                double trans) {
@@ -171,7 +226,7 @@ void keep_best(std::vector<Hypothesis>& best, Hypothesis h, std::size_t max, dou
 /// correspondences are correct, where uniform sampling rarely draws three of them.
 template <class Keep>
 void seed_from_common_partners(const Pairs& p, const std::vector<std::vector<int>>& compatible,
-                               double tol, const MatchConfig& c, SeenSets& seen, Keep&& keep) {
+                               const MatchConfig& c, Trials& trials, Keep&& keep) {
   const std::size_t m = p.src.size(), words = (m + 63) / 64;
   if (c.seed_pairs == 0) return;
   std::vector<std::uint64_t> bits(m * words, 0);
@@ -199,13 +254,11 @@ void seed_from_common_partners(const Pairs& p, const std::vector<std::vector<int
       while (both != 0) {
         const int k = static_cast<int>(w * 64) + __builtin_ctzll(both);
         both &= both - 1;
-        const std::vector<int> inliers = consensus_of(p, fit(p, {edges[e].i, edges[e].j, k}), tol);
-        if (inliers.size() < c.min_consensus || !seen.first(inliers)) continue;
-        const Eigen::Matrix4d T_ls = fit(p, inliers);
-        keep(T_ls, consensus_count(p, T_ls, tol));
+        trials.add({edges[e].i, edges[e].j, k}, keep);
       }
     }
   }
+  trials.flush(keep);
 }
 
 /// RANSAC guided by pairwise length consistency: a seed correspondence and two partners that
@@ -234,9 +287,11 @@ std::vector<Hypothesis> ransac(const Pairs& p, const AlignConfig& cfg, double re
   const double rot = cfg.validate.distinct_rotation_deg;
   const double trans = cfg.validate.distinct_translation * res;
   SeenSets seen;
-  seed_from_common_partners(p, compatible, tol, c, seen, [&](const Eigen::Matrix4d& T, std::size_t n) {
+  Trials trials(p, tol, c.min_consensus, seen);
+  const auto keep = [&](const Eigen::Matrix4d& T, std::size_t n) {
     keep_best(best, {T, n, -1}, c.max_hypotheses, rot, trans);
-  });
+  };
+  seed_from_common_partners(p, compatible, c, trials, keep);
   std::mt19937 rng(seed);
   std::discrete_distribution<std::size_t> pick_seed(weight.begin(), weight.end());
   for (int it = 0; it < c.iterations; ++it) {
@@ -248,11 +303,9 @@ std::vector<Hypothesis> ransac(const Pairs& p, const AlignConfig& cfg, double re
     if (b == cc) continue;
     const auto& nb = compatible[static_cast<std::size_t>(b)];
     if (!std::binary_search(nb.begin(), nb.end(), cc)) continue;  // lists are sorted
-    const std::vector<int> inliers = consensus_of(p, fit(p, {static_cast<int>(a), b, cc}), tol);
-    if (inliers.size() < c.min_consensus || !seen.first(inliers)) continue;
-    const Eigen::Matrix4d T_ls = fit(p, inliers);  // least squares over the consensus
-    keep_best(best, {T_ls, consensus_count(p, T_ls, tol), -1}, c.max_hypotheses, rot, trans);
+    trials.add({static_cast<int>(a), b, cc}, keep);
   }
+  trials.flush(keep);
   return best;
 }
 
