@@ -278,6 +278,10 @@ int main(int argc, char** argv) {
   app.add_option("--refine", refine_to,
                  "resample both parts of each case (cut and moved at the map's resolution) onto this finer grid [m], "
                  "e.g. 0.02: the pipeline sees a 2 cm map with the map's own detail");
+  std::string partner_path;
+  app.add_option("--partner", partner_path,
+                 "cut each case's source part from this map of the same place in the same frame (e.g. geb079.bt, "
+                 "8 cm, for fr_079.bt, 5 cm: pairs of mixed resolutions from two datasets), not from --map");
   app.add_option("--axis", axis, "cut along x (0) or y (1)");
   app.add_option("--seed", seed, "random seed of the transforms");
   app.add_option("--max-translation", max_translation, "|x|,|y| of T_R up to this [m]");
@@ -315,6 +319,11 @@ int main(int argc, char** argv) {
       return 0;
     }
     if (refine_to > 0.0) name += " on a " + fmt(refine_to, 3) + " m grid";
+    std::unique_ptr<octomap::OcTree> partner;
+    if (!partner_path.empty()) {
+      partner = mapmerge::read_octree_file(partner_path);
+      name += " <- " + partner_path.substr(partner_path.find_last_of('/') + 1);
+    }
     const auto on_grid = [&](std::unique_ptr<octomap::OcTree> part) {
       return refine_to > 0.0 ? mapmerge::refine(*part, refine_to) : std::move(part);
     };
@@ -354,7 +363,8 @@ int main(int argc, char** argv) {
       std::map<std::string, Prepared> target_cache;
       for (int t = 0; t < trials; ++t) {
         const Pose pose{shift(rng), shift(rng), lift(rng), tilt(rng), tilt(rng), yaw(rng)};
-        auto source = on_grid(mapmerge::crop_and_transform(*tree, source_box, Eigen::Isometry3d(pose.matrix())));
+        auto source = on_grid(
+            mapmerge::crop_and_transform(partner ? *partner : *tree, source_box, Eigen::Isometry3d(pose.matrix())));
         std::map<std::string, Prepared> source_cache;
         const std::size_t nv = t < variant_trials ? variants.size() : 1;
         for (std::size_t vi = 0; vi < nv; ++vi) {
@@ -395,6 +405,10 @@ int main(int argc, char** argv) {
           "a wrong merge is an accepted result that is not a success. t = slower map preparation + align "
           "(the two preparations run in parallel in `mapmerge merge`; file I/O excluded). T_err and errors "
           "in the summary are over successful cases.";
+    if (partner)
+      md << " The source part is cut from `" << partner_path.substr(partner_path.find_last_of('/') + 1)
+         << "` (the same place in the same frame, another dataset at " << fmt(partner->getResolution(), 2)
+         << " m), inside the source box of the cut of the target's map: r is that cut's overlap.";
     if (refine_to > 0.0)
       md << " Both parts are cut and moved at the map's own resolution, then resampled onto the "
          << fmt(refine_to, 3) << " m grid (`mapmerge::refine`): the pipeline sees maps at that resolution "
