@@ -19,23 +19,29 @@ using detail::starts_with;
 
 constexpr std::string_view kTreeId = "OcTree";
 
-/// The tree OctoMap's OcTree::readBinaryData builds from a `.bt` body (same nodes, same
-/// values: inner nodes the maximum of their children), read straight from the bytes. OctoMap
-/// reads each node through two istream calls and counts the whole tree again at the end; this
-/// reads a body the pre-pass has validated at ~1.5x the speed (fr_079: ~80 -> ~54 ms). Stops at
-/// a body that ends early (the node count check then rejects the tree).
-class BinaryBodyTree : public octomap::OcTree {
+/// The tree OctoMap builds from a body, read straight from the bytes: OcTree::readBinaryData's
+/// for a `.bt` body (same nodes, same values: inner nodes the maximum of their children), and
+/// OcTree::readData's for a `.ot` body (same nodes, same log-odds, inner nodes as stored).
+/// OctoMap reads each node through two istream calls and counts the whole tree again at the
+/// end; this reads a body the pre-pass has validated (at most 16 levels, finite values) at
+/// ~1.5x the speed (fr_079.bt: ~80 -> ~54 ms; the paper's pair, two `.ot` files read at once:
+/// ~80 -> ~50 ms). Stops at a body that ends early (the node count check then rejects the tree).
+class BodyTree : public octomap::OcTree {
  public:
-  BinaryBodyTree(double res, const std::uint8_t* body, std::size_t size)
+  BodyTree(double res, bool binary, const std::uint8_t* body, std::size_t size)
       : octomap::OcTree(res), next_(body), end_(body + size) {
     root = new octomap::OcTreeNode();
     tree_size = 1;  // createNodeChild counts the rest
-    read(root);
+    if (binary) {
+      read_binary(root);
+    } else {
+      read_full(root);
+    }
     size_changed = true;
   }
 
  private:
-  void read(octomap::OcTreeNode* node) {
+  void read_binary(octomap::OcTreeNode* node) {
     if (end_ - next_ < 2) {
       next_ = end_;
       return;
@@ -54,46 +60,25 @@ class BinaryBodyTree : public octomap::OcTree {
     for (unsigned i = 0; i < 8; ++i) {
       if ((inner & (1U << i)) == 0) continue;
       octomap::OcTreeNode* child = getNodeChild(node, i);
-      read(child);
+      read_binary(child);
       child->setLogOdds(child->getMaxChildLogOdds());
     }
   }
 
-  const std::uint8_t* next_;
-  const std::uint8_t* end_;
-};
+  static constexpr std::ptrdiff_t kFullNodeBytes = sizeof(float) + 1;  ///< log-odds, child bits
 
-/// The tree OctoMap's OcTree::readData builds from a `.ot` body (same nodes, same log-odds,
-/// inner nodes as stored), read straight from the bytes. OctoMap reads each node through two
-/// istream calls and counts the whole tree again at the end; this reads a body the pre-pass has
-/// validated (finite values, at most 16 levels) at ~1.6x the speed (the paper's pair, both files
-/// read at once: ~80 -> ~50 ms). Stops at a body that ends early (the node count check then
-/// rejects the tree).
-class FullBodyTree : public octomap::OcTree {
- public:
-  FullBodyTree(double res, const std::uint8_t* body, std::size_t size)
-      : octomap::OcTree(res), next_(body), end_(body + size) {
-    root = new octomap::OcTreeNode();
-    tree_size = 1;  // createNodeChild counts the rest
-    read(root);
-    size_changed = true;
-  }
-
- private:
-  static constexpr std::ptrdiff_t kNodeBytes = sizeof(float) + 1;  ///< log-odds, child bits
-
-  void read(octomap::OcTreeNode* node) {
-    if (end_ - next_ < kNodeBytes) {
+  void read_full(octomap::OcTreeNode* node) {
+    if (end_ - next_ < kFullNodeBytes) {
       next_ = end_;
       return;
     }
     float value = 0.0F;
     std::memcpy(&value, next_, sizeof(value));
     const unsigned children = next_[sizeof(float)];
-    next_ += kNodeBytes;
+    next_ += kFullNodeBytes;
     node->setLogOdds(value);
     for (unsigned i = 0; i < 8; ++i) {
-      if ((children & (1U << i)) != 0) read(createNodeChild(node, i));
+      if ((children & (1U << i)) != 0) read_full(createNodeChild(node, i));
     }
   }
 
@@ -158,12 +143,8 @@ DecodeResult decode_body(double res, bool binary, const std::uint8_t* body, std:
     result.num_nodes = scan.num_nodes;
     return result;
   }
-  if (binary) {
-    result.tree = std::make_unique<BinaryBodyTree>(res, body, size);
-    result.binary_body = std::make_shared<const std::vector<std::uint8_t>>(body, body + size);
-  } else {
-    result.tree = std::make_unique<FullBodyTree>(res, body, size);
-  }
+  result.tree = std::make_unique<BodyTree>(res, binary, body, size);
+  if (binary) result.binary_body = std::make_shared<const std::vector<std::uint8_t>>(body, body + size);
   result.num_nodes = result.tree->size();
   if (result.num_nodes != scan.num_nodes) {
     return rejected(DecodeError::kMalformedTree, "the body built a tree of " +
@@ -247,7 +228,7 @@ CheckedMap to_checked(DecodeResult r, double res) {
 namespace detail {
 
 std::unique_ptr<octomap::OcTree> build_checked_binary_tree(double res, const std::vector<std::uint8_t>& body) {
-  return std::make_unique<BinaryBodyTree>(res, body.data(), body.size());
+  return std::make_unique<BodyTree>(res, true, body.data(), body.size());
 }
 
 }  // namespace detail
