@@ -13,6 +13,7 @@
 #include <CLI/CLI.hpp>
 #include <Eigen/Geometry>
 
+#include "bench_format.hpp"
 #include "mapmerge/align/align.hpp"
 #include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/held_map.hpp"
@@ -20,6 +21,7 @@
 #include "mapmerge/map/map_io.hpp"
 
 namespace ma = mapmerge::align;
+using mapmerge::bench::fmt;
 using Clock = std::chrono::steady_clock;
 
 namespace {
@@ -115,14 +117,6 @@ Prepared prepare(const octomap::OcTree& tree, const ma::AlignConfig& c) {
   Prepared p{ma::prepare_map(tree, c), 0};
   p.ms = ms_since(t0);
   return p;
-}
-
-std::string fmt(double v, int prec = 3) {
-  if (std::isnan(v)) return "-";
-  if (std::isinf(v)) return "inf";
-  char b[32];
-  std::snprintf(b, sizeof b, "%.*f", prec, v);
-  return b;
 }
 
 Row run_case(const std::string& map, const Prepared& target, const Prepared& source,
