@@ -111,7 +111,7 @@ struct ValidateConfig {
   double d_th = 2.0;             ///< pair distance counted in the fitness, Eq. 7 [x res]
   std::size_t n_th = 100;        ///< fewest pairs for a finite fitness, Eq. 8 [count]
   double min_inlier_fraction = 0.03;  ///< inliers / points of the smaller map, floor [0..1]
-  double max_fitness = 0.8;      ///< accepted only if the fitness is below [x res]
+  double max_fitness = 0.75;     ///< accepted only if the fitness is below [x res]
   double conflict_distance = 3.0;  ///< a point further than this from any occupied point and inside
                                    ///< the other map's known free space contradicts the transform [x res]
   double min_inlier_share = 0.98;  ///< inliers / (inliers + contradictions) to accept [0..1]
