@@ -140,10 +140,12 @@ int run_merge(const MergeOptions& o) {
         return placed;
       });
     }
+    const auto t_prepare = std::chrono::steady_clock::now();  // stages.total_ms: preparation + alignment
     const align::PreparedMap target_prepared = align::prepare_map(*target, config);
     const align::PreparedMap source_prepared = source_side.get();
     result = align::align(target_prepared, source_prepared, config);
-    result.timings.total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    result.timings.total_ms =
+        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_prepare).count();
   } catch (const MapError& e) {
     std::cerr << "mapmerge merge: " << e.what() << "\n";
     return 1;  // (the threads still running are waited for by their futures)
