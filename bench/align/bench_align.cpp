@@ -13,7 +13,7 @@
 #include <CLI/CLI.hpp>
 #include <Eigen/Geometry>
 
-#include "bench_format.hpp"
+#include "bench_common.hpp"
 #include "mapmerge/align/align.hpp"
 #include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/held_map.hpp"
@@ -21,6 +21,8 @@
 #include "mapmerge/map/map_io.hpp"
 
 namespace ma = mapmerge::align;
+using mapmerge::bench::Errors;
+using mapmerge::bench::errors;
 using mapmerge::bench::fmt;
 using Clock = std::chrono::steady_clock;
 
@@ -59,22 +61,6 @@ struct Row {
   double floor_t_err = std::nan("");
   double floor_fitness = std::nan("");  ///< the fitness (Eq. 6) of that transform [m]
 };
-
-struct Errors {
-  double t_err, rot_deg, trans_m;
-};
-
-/// T_R maps target (world) points into the source frame: T_source_target = T_R.
-Errors errors(const Eigen::Matrix4d& T_est_target_source, const Eigen::Matrix4d& T_R) {
-  const Eigen::Matrix4d T_est = T_est_target_source.inverse();  // estimate of T_R
-  Errors e{};
-  e.t_err = (T_est * T_R.inverse() - Eigen::Matrix4d::Identity()).norm();
-  const Eigen::Matrix3d dR = T_est.topLeftCorner<3, 3>() * T_R.topLeftCorner<3, 3>().transpose();
-  e.rot_deg = std::acos(std::clamp((dR.trace() - 1.0) / 2.0, -1.0, 1.0)) * 180.0 / M_PI;
-  const Eigen::Matrix4d T_true_ts = T_R.inverse();
-  e.trans_m = (T_est_target_source.topRightCorner<3, 1>() - T_true_ts.topRightCorner<3, 1>()).norm();
-  return e;
-}
 
 std::vector<Variant> make_variants(const ma::AlignConfig& base, bool all) {
   std::vector<Variant> v{{"default", base}};
@@ -155,7 +141,7 @@ Row run_case(const std::string& map, const Prepared& target, const Prepared& sou
     row.t_err = e.t_err;
     row.rot_err = e.rot_deg;
     row.trans_err = e.trans_m;
-    row.success = e.rot_deg < 5.0 && e.trans_m < 0.3;
+    row.success = e.success();
   }
   return row;
 }

@@ -21,7 +21,7 @@
 #include <CLI/CLI.hpp>
 #include <Eigen/Geometry>
 
-#include "bench_format.hpp"
+#include "bench_common.hpp"
 #include "mapmerge/align/align.hpp"
 #include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/map_io.hpp"
@@ -58,13 +58,6 @@ struct Outcome {
   double fitness = 0, overlap = 0, inlier_share = 0, seconds = 0;
   std::string reason;
 };
-
-/// Within the accuracy bench's success bounds: rotation < 5 deg, translation < 0.3 m.
-bool near(const Eigen::Matrix4d& a, const Eigen::Matrix4d& b) {
-  const Eigen::Matrix3d dR = a.topLeftCorner<3, 3>() * b.topLeftCorner<3, 3>().transpose();
-  const double deg = std::acos(std::clamp((dR.trace() - 1.0) / 2.0, -1.0, 1.0)) * 180.0 / M_PI;
-  return deg < 5.0 && (a.topRightCorner<3, 1>() - b.topRightCorner<3, 1>()).norm() < 0.3;
-}
 
 std::vector<Search> searches(const ma::AlignConfig& base) {
   ma::AlignConfig whole = base;
@@ -134,12 +127,13 @@ int main(int argc, char** argv) {
           const std::string pair = target.name + " <- " + source.name;
           // Two halves of one map touch: placed where they belong, they are no wrong merge.
           const bool halves = i == j;
-          const Eigen::Matrix4d truth = T.inverse();
+
           const ma::PreparedMap pt = ma::prepare_map(*target.tree, base), ps = ma::prepare_map(*source.tree, base);
           for (const Search& s : all) {
             const auto t0 = Clock::now();
             const ma::AlignResult r = s.rescue_only ? ma::rescue(pt, ps, s.config) : ma::align(pt, ps, s.config);
-            Outcome o{pair, s.name, r.accepted, r.accepted && !(halves && near(r.T_target_source, truth)),
+            const bool where_it_belongs = halves && mapmerge::bench::errors(r.T_target_source, T).success();
+            Outcome o{pair, s.name, r.accepted, r.accepted && !where_it_belongs,
                       r.fitness, r.overlap, r.inlier_share, std::chrono::duration<double>(Clock::now() - t0).count(),
                       r.reason};
             std::cerr << pair << " [" << s.name << "]: "
