@@ -12,6 +12,9 @@
 #pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
 #include <pcl/registration/ndt.h>
 #pragma GCC diagnostic pop
+// NDT's voxel grids, instantiated here, not loaded from libpcl_filters (see prepare_pcl.cpp).
+#include <pcl/filters/impl/voxel_grid.hpp>
+#include <pcl/filters/impl/voxel_grid_covariance.hpp>
 #include <tbb/global_control.h>
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_invoke.h>

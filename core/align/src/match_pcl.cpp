@@ -12,6 +12,8 @@
 #include <pcl/recognition/impl/cg/geometric_consistency.hpp>
 #include <pcl/registration/ia_ransac.h>
 #include <pcl/registration/sample_consensus_prerejective.h>
+// Instantiated here, not loaded from libpcl_sample_consensus (see prepare_pcl.cpp).
+#include <pcl/sample_consensus/impl/ransac.hpp>
 
 #include "prepared_map_impl.hpp"
 

@@ -16,10 +16,76 @@
 #include <pcl/keypoints/iss_3d.h>
 #include <pcl/sample_consensus/ransac.h>
 #include <pcl/sample_consensus/sac_model_perpendicular_plane.h>
+// The templates of PCL's features, filters and sample consensus are instantiated here from
+// their implementation headers, not taken from libpcl_features, libpcl_filters and
+// libpcl_sample_consensus: those libraries carry ~170k relocations for instantiations the
+// pipeline never calls, and loading them cost ~40 ms at every start of `mapmerge`.
+#include <pcl/features/impl/boundary.hpp>
+#include <pcl/features/impl/fpfh.hpp>
+#include <pcl/features/impl/fpfh_omp.hpp>
+#include <pcl/features/impl/integral_image_normal.hpp>
+#include <pcl/features/impl/normal_3d.hpp>
+#include <pcl/features/impl/shot.hpp>
+#include <pcl/features/impl/shot_lrf.hpp>
+#include <pcl/features/impl/shot_lrf_omp.hpp>
+#include <pcl/features/impl/shot_omp.hpp>
+#include <pcl/filters/impl/extract_indices.hpp>
+#include <pcl/filters/impl/filter_indices.hpp>
+#include <pcl/filters/impl/statistical_outlier_removal.hpp>
+#include <pcl/filters/impl/voxel_grid.hpp>
+#include <pcl/sample_consensus/impl/ransac.hpp>
+#include <pcl/sample_consensus/impl/sac_model_perpendicular_plane.hpp>
+#include <pcl/sample_consensus/impl/sac_model_plane.hpp>
 
 #include "mapmerge/align/stages.hpp"
 #include "mapmerge/map/held_map.hpp"
 #include "prepared_map_impl.hpp"
+
+/// FPFH's pair feature for the pipeline's points (the one non-template function the FPFH
+/// template calls in libpcl_features). For the pair (p, n_p), (q, n_q): the source is the point
+/// whose normal makes the smaller angle with the line joining them; with d the unit vector
+/// from the source to the other point and u = the source's normal, v = d x u / |d x u|,
+/// w = u x v (the Darboux frame), and n the other point's normal:
+///   f1 = atan2(w.n, u.n), f2 = v.n, f3 = u.d, f4 = |q - p|.
+/// A pair at one position, or whose line runs along the source's normal, has no frame: all
+/// four are 0 and the pair is not counted. Same float operations, in the same order, as
+/// PCL's, so the descriptors are the same to the bit.
+template <>
+bool pcl::FPFHEstimation<mapmerge::align::Point, mapmerge::align::Point, mapmerge::align::Fpfh>::computePairFeatures(
+    const pcl::PointCloud<mapmerge::align::Point>& cloud, const pcl::PointCloud<mapmerge::align::Point>& normals,
+    int p_idx, int q_idx, float& f1, float& f2, float& f3, float& f4) {
+  const auto zero_w = [](Eigen::Vector4f v) {
+    v[3] = 0.0F;
+    return v;
+  };
+  Eigen::Vector4f line = zero_w(cloud[q_idx].getVector4fMap() - cloud[p_idx].getVector4fMap());
+  f4 = line.norm();
+  f1 = f2 = f3 = 0.0F;
+  if (f4 == 0.0F) return false;
+  Eigen::Vector4f u = zero_w(normals[p_idx].getNormalVector4fMap());
+  Eigen::Vector4f n = zero_w(normals[q_idx].getNormalVector4fMap());
+  const float cos_p = u.dot(line) / f4;
+  const float cos_q = n.dot(line) / f4;
+  // acos, as PCL compares: its NaN above 1 (rounding) and its ties decide as there.
+  if (std::acos(std::fabs(cos_p)) > std::acos(std::fabs(cos_q))) {
+    std::swap(u, n);
+    line = -line;
+    f3 = -cos_q;
+  } else {
+    f3 = cos_p;
+  }
+  Eigen::Vector4f v = zero_w(line.cross3(u));
+  const float v_norm = v.norm();
+  if (v_norm == 0.0F) {
+    f3 = f4 = 0.0F;
+    return false;
+  }
+  v /= v_norm;
+  const Eigen::Vector4f w = zero_w(u.cross3(v));
+  f2 = v.dot(n);
+  f1 = std::atan2(w.dot(n), u.dot(n));
+  return true;
+}
 
 namespace mapmerge::align {
 namespace {
