@@ -524,8 +524,12 @@ void GlobalFusion::stage(std::shared_ptr<const HeldMap> map) {
   if (!map || walkable_body(*map, resolution_)) return;  // its body is read in one pass anyway
   auto staged = std::make_unique<StagedLeaves>();
   const std::shared_ptr<const octomap::OcTree> tree = map->tree();
-  staged->work = detail::estimate_work(*tree, resolution_, config_.fuse_free);
-  for_each_tree_leaf(*tree, [&](const TreeLeaf& leaf) { staged->leaves.push_back(leaf); });
+  // One walk gives the leaves and their work (estimate_work's sum).
+  const float occupied = tree->getOccupancyThresLog();
+  for_each_tree_leaf(*tree, [&](const TreeLeaf& leaf) {
+    staged->work += detail::leaf_work(leaf.size, leaf.log_odds >= occupied, resolution_, config_.fuse_free);
+    staged->leaves.push_back(leaf);
+  });
   staged->map = std::move(map);
   staged_ = std::move(staged);
 }

@@ -160,12 +160,17 @@ inline std::string check_rigid(const Eigen::Matrix4d& T, double tolerance) {
   return "";
 }
 
+/// The target voxel visits fusing one leaf of `size` [m] costs (estimate_work's term).
+inline double leaf_work(double size, bool occupied, double target_res, bool fuse_free) {
+  if (!fuse_free && !occupied) return 0.0;
+  return detail::leaf_fusion_work(std::max(1.0, std::ceil(size / target_res)));
+}
+
 /// Upper bound of the target voxel visits fusing `source` costs (see FuseConfig::max_work).
 inline double estimate_work(const octomap::OcTree& source, double target_res, bool fuse_free) {
   double work = 0.0;
   for (auto it = source.begin_leafs(), end = source.end_leafs(); it != end; ++it) {
-    if (!fuse_free && !source.isNodeOccupied(*it)) continue;
-    work += detail::leaf_fusion_work(std::max(1.0, std::ceil(it.getSize() / target_res)));
+    work += leaf_work(it.getSize(), source.isNodeOccupied(*it), target_res, fuse_free);
   }
   return work;
 }
