@@ -54,10 +54,12 @@ TEST(AlignConfig, YamlDumpRoundTrips) {
   ma::AlignConfig c;
   c.match.method = ma::MatchMethod::kPrerejective;
   c.refine.max_iterations = 17;
+  c.refine.final_iterations = 41;
   c.preprocess.z_min = -0.5;
   const ma::AlignConfig back = ma::parse_align_config(ma::dump_align_config_yaml(c));
   EXPECT_EQ(back.match.method, ma::MatchMethod::kPrerejective);
   EXPECT_EQ(back.refine.max_iterations, 17);
+  EXPECT_EQ(back.refine.final_iterations, 41);
   EXPECT_DOUBLE_EQ(back.preprocess.z_min, -0.5);
   EXPECT_EQ(ma::dump_align_config_yaml(back), ma::dump_align_config_yaml(c));
   EXPECT_NE(ma::dump_align_config_json(c).find("\"prerejective\""), std::string::npos);

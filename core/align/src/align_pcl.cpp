@@ -258,15 +258,15 @@ Cloud overlap_sample(const FullCloud& full, const SerialKdTree<Point>& tree, con
 /// is already refined).
 Eigen::Matrix4d icp(const PreparedMap::Impl& source, const Cloud::Ptr& target_crop,
                     const SerialKdTree<Point>& tree, const Eigen::Matrix4d& T0, const RefineConfig& c,
-                    const LengthUnits& units, std::size_t max_points, bool ramp) {
+                    const LengthUnits& units, std::size_t max_points, int iterations, bool ramp) {
   // Source: full-resolution voxel centres (not the downsampled cloud), so the result is not
   // quantised by the describe voxel; target: downsampled points with their local planes.
   const double last = c.final_correspondence * units.tolerance;
   const double first = ramp ? c.max_correspondence * units.refine : last;
   const Cloud src = overlap_sample(*source.full, tree, T0, first, max_points);
   Eigen::Matrix4d T = T0;
-  const int ramp_its = std::max(1, c.max_iterations / 3);  // iterations to reach final_correspondence
-  for (int it = 0; it < c.max_iterations; ++it) {
+  const int ramp_its = std::max(1, iterations / 3);  // iterations to reach final_correspondence
+  for (int it = 0; it < iterations; ++it) {
     const double f = ramp ? std::min(1.0, static_cast<double>(it) / ramp_its) : 1.0;
     const double dmax = first + f * (last - first);
     const Normal6 sys = icp_system(src, 1, *target_crop, tree, T, dmax, first, c, dmax / 2.0);
@@ -326,8 +326,9 @@ Eigen::Matrix4d local_alignment(const PreparedMap::Impl& target, const PreparedM
     // Fine planes, fitted on the crop only (the d_m margin keeps its cut far from the overlap).
     estimate_normals(*crop, tree, cfg.preprocess.fine_normal_radius * units.preprocess, nullptr, units.res);
   }
-  return icp(source, crop, tree, T0, c, units, pass == Pass::kCandidate ? c.max_points : c.final_points,
-             !from_polished);
+  const bool candidate = pass == Pass::kCandidate;
+  return icp(source, crop, tree, T0, c, units, candidate ? c.max_points : c.final_points,
+             candidate ? c.max_iterations : c.final_iterations, !from_polished);
 }
 
 // ---------------------------------------------------------------------------------------

@@ -89,6 +89,7 @@ void for_each_field(Config& c, F&& f) {
   f("refine", "method", r.method);
   f("refine", "point_to_plane", r.point_to_plane);
   f("refine", "max_iterations", r.max_iterations);
+  f("refine", "final_iterations", r.final_iterations);
   f("refine", "max_correspondence", r.max_correspondence);
   f("refine", "final_correspondence", r.final_correspondence);
   f("refine", "crop_margin", r.crop_margin);
@@ -263,6 +264,7 @@ void check_align_config(const AlignConfig& c) {
   require(c.validate.coarse_points >= 10, "validate.coarse_points >= 10");
   require(c.validate.refine_candidates >= 1, "validate.refine_candidates >= 1");
   require(c.refine.max_iterations >= 1, "refine.max_iterations >= 1");
+  require(c.refine.final_iterations >= 1, "refine.final_iterations >= 1");
   require(c.refine.max_correspondence > 0.0 && c.refine.final_correspondence > 0.0,
           "refine correspondence distances > 0");
   require(c.refine.max_points >= 10, "refine.max_points >= 10");
