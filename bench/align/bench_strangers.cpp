@@ -127,7 +127,6 @@ int main(int argc, char** argv) {
           const std::string pair = target.name + " <- " + source.name;
           // Two halves of one map touch: placed where they belong, they are no wrong merge.
           const bool halves = i == j;
-
           const ma::PreparedMap pt = ma::prepare_map(*target.tree, base), ps = ma::prepare_map(*source.tree, base);
           for (const Search& s : all) {
             const auto t0 = Clock::now();

@@ -132,8 +132,9 @@ struct RefineConfig {
   bool point_to_plane = true;    ///< ICP/OICP objective: point-to-plane (else point-to-point)
   int max_iterations = 30;       ///< ICP/NDT iterations on each candidate [count]
   /// ICP iterations of the final pass on the chosen transform (and of refine()) [count]. Point-to-
-  /// plane ICP slides slowly along a narrow overlap: at 30 the 2 cm grid's final pass stopped
-  /// 2-5 cm short of its fit in 3 of 6 cases (bench/results/README.md, session 22).
+  /// plane ICP slides slowly along a narrow overlap: at 30, three of six 15 % cases on the 2 cm
+  /// grid ended 5-7 cm off where ICP from the truth ends 1-4 cm off (bench/results/README.md,
+  /// session 22).
   int final_iterations = 60;
   double max_correspondence = 4.0;  ///< ICP pair distance, first iteration [x max(u, res)]
   double final_correspondence = 1.0;  ///< ICP pair distance reached by the last iterations [x res] (2 let coarse corridors slide 1.5 voxels)
