@@ -114,18 +114,45 @@ int main(int argc, char** argv) {
     Eigen::Matrix4d T1 = Eigen::Matrix4d::Identity();
     T1.topLeftCorner<3, 3>() = Eigen::AngleAxisd(M_PI / 180.0, Eigen::Vector3d::UnitZ()).toRotationMatrix();
     T1(0, 3) = 0.02;
+    // The robot's new map halfway through the move (its last `grow` m along x cut off): fused at
+    // once by its difference, the move going on with it. The same update with no move under way,
+    // for comparison.
+    double x0, y0, z0, x1, y1, z1;
+    held->tree()->getMetricMin(x0, y0, z0);
+    held->tree()->getMetricMax(x1, y1, z1);
+    const Eigen::AlignedBox3d cut_box(Eigen::Vector3d(x0 - 1, y0 - 1, z0 - 1), Eigen::Vector3d(x1 - grow, y1 + 1, z1 + 1));
+    const std::vector<std::uint8_t> cut_bytes =
+        encode_map(*crop_and_transform(*held->tree(), cut_box, Eigen::Isometry3d::Identity()), Encoding::kOctomapBt);
+    const std::shared_ptr<const HeldMap> cut = check_map(cut_bytes.data(), cut_bytes.size(), Encoding::kOctomapBt, DecodeLimits{}).map;
     std::vector<double> steps, encodes;
+    double halfway_ms = 0.0;
+    std::size_t halfway_cubes = 0;
+    std::shared_ptr<const HeldMap> moving = held;
     for (int i = 0; i < 10000; ++i) {
+      const bool update = i == 4 && cut;
+      if (update) moving = cut;
       t = wall_ms();
-      const GlobalFuseResult r = g.set("r", held, T1, 0.0, move_step);
-      steps.push_back(wall_ms() - t);
+      const GlobalFuseResult r = g.set("r", moving, T1, 0.0, move_step);
+      (update ? halfway_ms : steps.emplace_back()) = wall_ms() - t;
+      if (update) halfway_cubes = r.cubes;
       t = wall_ms();
       g.encode();
-      encodes.push_back(wall_ms() - t);
+      if (!update) encodes.push_back(wall_ms() - t);
       if (!r.moving) break;
     }
     std::printf("%zu steps: step median %.1f ms, max %.1f ms; encode after a step median %.1f ms\n", steps.size(),
                 median(steps), *std::max_element(steps.begin(), steps.end()), median(encodes));
+    if (cut) {
+      GlobalFusion still(held->resolution());
+      if (threads != 0) still.set_threads(threads);
+      still.set("r", held, T1);
+      still.encode();
+      t = wall_ms();
+      const GlobalFuseResult r = still.set("r", cut, T1);
+      const double still_ms = wall_ms() - t;
+      std::printf("a new map halfway (last %.1f m cut off): %.1f ms, %zu cubes; the same update with no move: %.1f ms, "
+                  "%zu cubes\n", grow, halfway_ms, halfway_cubes, still_ms, r.cubes);
+    }
     return 0;
   }
   const auto world = read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/" + map);

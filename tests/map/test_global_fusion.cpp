@@ -536,20 +536,59 @@ TEST_F(GlobalFusionTest, AMoveInStepsKeepsEveryLeafOnceAndEndsAsAFusionAtTheNewP
   EXPECT_TRUE(g.encode().bt == after) << "the last step does not end at a fusion at the new pose";
   EXPECT_FALSE(m2->has_tree()) << "a move in steps reads the map's bytes";
 
-  // Halfway: another pose (the move ends at once, then the map moves whole), a grown map (the
-  // move ends, then its difference), the robot taken out, a move of one whole step.
+  // Halfway: another pose (the move ends at once, then the map moves whole), new maps (each by
+  // its difference, at once, and the move goes on with it), the robot taken out, a move of one
+  // whole step.
   GlobalFusion other_pose(res);
   started(other_pose);
   ASSERT_TRUE(other_pose.set("r2", m2, again).ok);
   EXPECT_FALSE(other_pose.moving("r2"));
   EXPECT_TRUE(other_pose.encode().bt == fresh(m2, again));
+  // New maps while moving: grown; then every known leaf occupied and the tree pruned, and at
+  // once (no step in between) the same leaves free: larger leaves than the moving map's, so some
+  // lie across the boundary its steps left and are cut there; then the first map again (the
+  // grown part taken out). Each goes in without a step.
+  octomap::OcTree coarse_tree(*grown.map);
+  for (auto it = coarse_tree.begin_leafs(), end = coarse_tree.end_leafs(); it != end; ++it) {
+    it->setLogOdds(coarse_tree.getClampingThresMaxLog());
+  }
+  coarse_tree.prune();
+  ASSERT_LT(coarse_tree.getNumLeafNodes(), grown.map->getNumLeafNodes());
+  octomap::OcTree coarse_free_tree(coarse_tree);
+  for (auto it = coarse_free_tree.begin_leafs(), end = coarse_free_tree.end_leafs(); it != end; ++it) {
+    it->setLogOdds(coarse_free_tree.getClampingThresMinLog());
+  }
+  const auto m2_coarse = checked(coarse_tree);
+  const auto m2_coarse_free = checked(coarse_free_tree);
+  const auto new_maps = [&](GlobalFusion& g) {
+    started(g);
+    for (const auto& [next, step_after] : {std::pair{m2_grown, true}, std::pair{m2_coarse, false},
+                                           std::pair{m2_coarse_free, true}, std::pair{m2, true}}) {
+      const GlobalFuseResult r = g.set("r2", next, moved, 0.0, step);
+      ASSERT_TRUE(r.ok);
+      EXPECT_TRUE(r.moving && r.incremental && r.from_bodies) << "a new map halfway goes in by its difference";
+      EXPECT_TRUE(g.map_of("r2") == next);
+      if (step_after) {
+        ASSERT_TRUE(g.set("r2", next, moved, 0.0, step / 4).ok);  // the move's next step, with the new map
+      }
+      ASSERT_TRUE(g.moving("r2"));
+    }
+  };
   GlobalFusion grew(res);
-  started(grew);
-  const GlobalFuseResult g2 = grew.set("r2", m2_grown, moved, 0.0, step);
-  ASSERT_TRUE(g2.ok);
-  EXPECT_FALSE(g2.moving);
-  EXPECT_TRUE(g2.incremental);
-  EXPECT_TRUE(grew.encode().bt == fresh(m2_grown, moved));
+  new_maps(grew);
+  for (int n = 1; grew.moving("r2"); ++n) {
+    ASSERT_TRUE(grew.set("r2", m2, moved, 0.0, step).ok);
+    ASSERT_LT(n, 50);
+  }
+  EXPECT_TRUE(grew.encode().bt == after) << "new maps halfway: not the fresh fusion at the end";
+  GlobalFusion grew_removed(res);
+  new_maps(grew_removed);
+  grew_removed.remove("r2");
+  EXPECT_TRUE(grew_removed.encode().bt == fresh(nullptr, T2)) << "new maps halfway: a leaf counted twice or not at all";
+  GlobalFusion grew_other_pose(res);
+  new_maps(grew_other_pose);
+  ASSERT_TRUE(grew_other_pose.set("r2", m2_grown, again, 0.0, step).ok);  // ends the move, then moves whole
+  EXPECT_TRUE(grew_other_pose.encode().bt == fresh(m2_grown, again));
   GlobalFusion removed(res);
   started(removed);
   removed.remove("r2");

@@ -1257,7 +1257,7 @@ TEST(GlobalMapBuilder, AMovedRobotGoesInStepsAndAnotherRobotsUpdateGoesOutInBetw
   EXPECT_TRUE(last->data == expected->data) << "after the move in steps, the map differs from a fresh build";
 
   // r2 grows and is moved at once: its content goes out first (at the fused pose), then the move
-  // in steps; a map r2 sends halfway waits for the move's end (r2's own update, not the fleet's).
+  // in steps; a map r2 sends halfway goes out in the next build too, and the move goes on with it.
   const auto sequence_of = [](const GlobalMapOut& g, const std::string& id) {
     for (const Contribution& c : g.contributors) {
       if (c.robot_id == id) return c.sequence;
@@ -1277,8 +1277,10 @@ TEST(GlobalMapBuilder, AMovedRobotGoesInStepsAndAnotherRobotsUpdateGoesOutInBetw
   registry.put_map(received_record_of(test::cut_robot_map(*world, "r2", box(4, 31), T2), 3));
   const auto halfway = builder.build(registry, ++version);
   ASSERT_TRUE(halfway);
-  EXPECT_EQ(sequence_of(*halfway, "r2"), 2u);
+  EXPECT_EQ(sequence_of(*halfway, "r2"), 3u) << "r2's own update waited for its move";
+  EXPECT_EQ(builder.last_stages().incremental, 1u);
   EXPECT_EQ(builder.last_stages().moving, 1u);
+  EXPECT_TRUE(builder.deferred()) << "the move goes on";
   last = halfway;
   const std::uint64_t stop = version + 20;
   while (builder.deferred() && version < stop) {

@@ -10,6 +10,7 @@
 #include <limits>
 #include <mutex>
 #include <unordered_map>
+#include <utility>
 
 #include "leaf_mapper.hpp"
 #include "mapmerge/map/bounds.hpp"
@@ -162,17 +163,32 @@ class BodyDiff {
     return ok_ && pa == a_.size() && pb == b_.size();
   }
   std::vector<ChangedCube> cubes;
+  std::vector<ChangedCube> cubes_after;  ///< the parts from set_split()'s code on
   double work = 0.0;  ///< fusion work of the new map (as TreeDiff counts it)
 
-  /// Gives only the changed cubes [first, last) of the walk's order, and stops walking at the
-  /// one after (run() then returns false: the bodies were not read to their ends). A move in
-  /// steps walks each step's slice this way, not the whole body.
-  void set_range(std::size_t first, std::size_t last) {
-    first_ = first;
-    last_ = last;
+  /// The walk's order as Morton codes of the finest keys (morton.hpp): a cube at depth d holds
+  /// the codes [code of its lowest key, + 8^(16-d)). This is the end of that order.
+  static constexpr std::uint64_t kOrderEnd = std::uint64_t{1} << (3 * kTreeDepth);
+
+  /// Gives only the parts of changed cubes in [from, to) (a cube across either end is cut into
+  /// its octants, as far down as needed), at most `limit` of them: the window then ends where
+  /// the last one ends. The walk stops at the first changed cube past the window (run() then
+  /// returns false: the bodies were not read to their ends). A move in steps walks each step's
+  /// slice this way, not the whole body.
+  void set_window(std::uint64_t from, std::uint64_t to, std::size_t limit) {
+    from_ = from;
+    to_ = to;
+    limit_ = limit;
+    windowed_ = true;
   }
-  std::size_t changed_seen() const { return seen_; }  ///< changed cubes met, given or not
-  bool stopped() const { return stopped_; }           ///< the walk ended at `last`
+  /// Where the window ends now (its `to`, or the end of its `limit`-th part).
+  std::uint64_t window_end() const { return to_; }
+  bool stopped() const { return stopped_; }  ///< the walk ended past the window
+  /// The parts of changed cubes from `at` on go to cubes_after (cut there as set_window cuts).
+  void set_split(std::uint64_t at) {
+    split_ = at;
+    windowed_ = true;
+  }
 
  private:
   enum Code : unsigned { kUnknown = 0, kFree = 1, kOccupied = 2, kInner = 3 };
@@ -205,21 +221,43 @@ class BodyDiff {
   /// Two uniform values over the node at (key, depth): a cube where their evidence differs.
   void compare(unsigned ca, unsigned cb, const octomap::OcTreeKey& key, unsigned depth) {
     const std::int64_t ea = ca == kUnknown ? 0 : ea_[ca], eb = cb == kUnknown ? 0 : eb_[cb];
-    if (ea == eb) return;
-    const std::size_t index = seen_++;
-    if (index >= last_) {
+    if (ea != eb) deliver(key, depth, eb - ea);
+  }
+  /// A changed cube at (key, depth), or its parts, to the window, the split and the output.
+  void deliver(const octomap::OcTreeKey& key, unsigned depth, std::int64_t delta) {
+    if (!windowed_) {
+      give(key, depth, delta, false);
+      return;
+    }
+    const auto [lo, hi] = order_range(key, depth);
+    if (hi <= from_) return;
+    if (lo >= to_) {
       stopped_ = true;
       ok_ = false;  // ends the walk
       return;
     }
-    if (index < first_) return;
+    if (lo < from_ || hi > to_ || (lo < split_ && split_ < hi)) {  // across a cut: its octants
+      for (unsigned i = 0; i < 8 && ok_; ++i) deliver(child_key(key, depth, i), depth + 1, delta);
+      return;
+    }
+    give(key, depth, delta, lo >= split_);
+    if (++given_ >= limit_) to_ = hi;
+  }
+  void give(const octomap::OcTreeKey& key, unsigned depth, std::int64_t delta, bool after_split) {
     ChangedCube cube{Eigen::Vector3d(coord(key[0], depth), coord(key[1], depth), coord(key[2], depth)),
-                     node_size(depth), eb - ea};
+                     node_size(depth), delta};
     if (emit_) {
       emit_(cube);
     } else {
-      cubes.push_back(cube);
+      (after_split ? cubes_after : cubes).push_back(cube);
     }
+  }
+  /// The codes [first, end) of the walk's order that the node at (key, depth) holds.
+  static std::pair<std::uint64_t, std::uint64_t> order_range(const octomap::OcTreeKey& key, unsigned depth) {
+    const unsigned shift = kTreeDepth - depth;
+    const auto low = static_cast<octomap::key_type>(~((1U << shift) - 1U));  // the node's lowest key
+    const std::uint64_t lo = detail::morton_code(key[0] & low, key[1] & low, key[2] & low);
+    return {lo, lo + (std::uint64_t{1} << (3 * shift))};
   }
   static const std::vector<std::uint8_t>& no_body() {
     static const std::vector<std::uint8_t> empty;
@@ -263,29 +301,38 @@ class BodyDiff {
   bool same_subtree(std::size_t& pa, std::size_t& pb, unsigned depth) {
     if (pa + 2 > a_.size() || pb + 2 > b_.size() || a_[pa] != b_[pb] || a_[pa + 1] != b_[pb + 1]) return false;
     if (ea_[kFree] != eb_[kFree] || ea_[kOccupied] != eb_[kOccupied]) return false;  // same codes, other evidence
-    // The old subtree's length and leaves, level by level (a pending count per depth, as a scan).
+    std::size_t length = 0;
+    double w = 0.0;
+    if (!scan_subtree(a_, pa, depth, length, w)) return false;  // not a complete tree: let the walk flag it
+    if (pb + length > b_.size() || std::memcmp(a_.data() + pa, b_.data() + pb, length) != 0) return false;
+    pa += length;
+    pb += length;
+    work += w;
+    return true;
+  }
+  /// The length [bytes] of the subtree whose root record (a node at `depth`) is at `pos` of
+  /// `body`, and the fusion work of its leaves (as the new map's), read level by level (a pending
+  /// count per depth) without a walk. False when the body ends first or nests too deep.
+  bool scan_subtree(const std::vector<std::uint8_t>& body, std::size_t pos, unsigned depth, std::size_t& length,
+                    double& w) const {
     std::array<std::uint32_t, kTreeDepth + 2> pending{};
     pending[depth] = 1;
     unsigned d = depth;
-    std::size_t pos = pa;
-    double w = 0.0;
+    const std::size_t start = pos;
+    w = 0.0;
     for (;;) {
       while (d >= depth && pending[d] == 0) --d;
       if (d < depth || d > kTreeDepth) break;
       --pending[d];
-      if (pos + 2 > a_.size() || d >= kTreeDepth) return false;  // not a complete tree: let the walk flag it
-      const unsigned r = a_[pos] | unsigned{a_[pos + 1]} << 8;
+      if (pos + 2 > body.size() || d >= kTreeDepth) return false;
+      const unsigned r = body[pos] | unsigned{body[pos + 1]} << 8;
       pos += 2;
       const unsigned lo = r & 0x5555U, hi = (r >> 1) & 0x5555U;
       const unsigned inner = ones(lo & hi), occupied = ones(hi & ~lo), free = ones(lo & ~hi);
       w += leaf_work_[d + 1] * static_cast<double>(occupied + (config_.fuse_free ? free : 0U));
       if (inner > 0) pending[++d] = static_cast<std::uint32_t>(inner);
     }
-    const std::size_t length = pos - pa;
-    if (pb + length > b_.size() || std::memcmp(a_.data() + pa, b_.data() + pb, length) != 0) return false;
-    pa += length;
-    pb += length;
-    work += w;
+    length = pos - start;
     return true;
   }
   /// One map (`before` or not) has an inner node at (key, depth), at pos; the other is uniform
@@ -294,6 +341,17 @@ class BodyDiff {
     if (depth > 15) ok_ = false;
     if (!ok_) return;
     const std::vector<std::uint8_t>& body = before ? a_ : b_;
+    if (from_ > 0 && order_range(key, depth).second <= from_) {  // before the window: only its length
+      std::size_t length = 0;
+      double w = 0.0;
+      if (!scan_subtree(body, pos, depth, length, w)) {
+        ok_ = false;
+        return;
+      }
+      pos += length;
+      if (!before) work += w;
+      return;
+    }
     const std::size_t node = pos;
     pos += 2;
     for (unsigned i = 0; i < 8; ++i) {
@@ -314,9 +372,12 @@ class BodyDiff {
   double target_res_;
   const FuseConfig& config_;
   std::function<void(const ChangedCube&)> emit_;
-  std::size_t first_ = 0;
-  std::size_t last_ = SIZE_MAX;
-  std::size_t seen_ = 0;
+  std::uint64_t from_ = 0;
+  std::uint64_t to_ = kOrderEnd;
+  std::size_t limit_ = SIZE_MAX;
+  std::size_t given_ = 0;  ///< parts given in the window
+  std::uint64_t split_ = kOrderEnd;
+  bool windowed_ = false;  ///< set_window() or set_split() called: cubes are placed in the order
   bool stopped_ = false;
   std::int64_t ea_[3] = {0, 0, 0};
   std::int64_t eb_[3] = {0, 0, 0};
@@ -499,6 +560,18 @@ void map_cubes(detail::SumTree& sums, const Eigen::Matrix4d& T, double res, cons
   }
 }
 
+/// map_cubes() of `cubes` with their evidence times `sign` (+1: put in, -1: taken out).
+void place_cubes(detail::SumTree& sums, const Eigen::Matrix4d& T, double res, const std::vector<ChangedCube>& cubes,
+                 int sign, unsigned threads, FuseResult& counts) {
+  if (sign > 0) {
+    map_cubes(sums, T, res, cubes, threads, counts);
+    return;
+  }
+  std::vector<ChangedCube> negated = cubes;
+  for (ChangedCube& c : negated) c.delta = -c.delta;
+  map_cubes(sums, T, res, negated, threads, counts);
+}
+
 }  // namespace
 
 struct GlobalFusion::StagedLeaves {
@@ -588,21 +661,13 @@ std::optional<Eigen::AlignedBox3d> GlobalFusion::extent_of(const std::string& ro
 
 std::size_t GlobalFusion::memory_usage() const { return sums_->memoryUsage(); }
 
-std::size_t GlobalFusion::add_leaves(const HeldMap& map, std::size_t first, std::size_t last,
-                                     std::initializer_list<Placement> at, GlobalFuseResult& stats) {
+std::uint64_t GlobalFusion::add_leaves(const HeldMap& map, std::uint64_t from, std::uint64_t to, std::size_t limit,
+                                       std::initializer_list<Placement> at, GlobalFuseResult& stats) {
   FuseResult counts;
   constexpr std::size_t kRun = std::size_t{1} << 16;
-  std::vector<ChangedCube> run, negated;
+  std::vector<ChangedCube> run;
   const auto flush = [&] {
-    for (const Placement& p : at) {
-      if (p.sign > 0) {
-        map_cubes(*sums_, *p.T, resolution_, run, threads_, counts);
-        continue;
-      }
-      negated = run;
-      for (ChangedCube& c : negated) c.delta = -c.delta;
-      map_cubes(*sums_, *p.T, resolution_, negated, threads_, counts);
-    }
+    for (const Placement& p : at) place_cubes(*sums_, *p.T, resolution_, run, p.sign, threads_, counts);
     run.clear();
   };
   const auto add = [&](const ChangedCube& cube) {
@@ -614,36 +679,64 @@ std::size_t GlobalFusion::add_leaves(const HeldMap& map, std::size_t first, std:
     throw MapError("GlobalFusion: a map moved in steps has no checked body");  // set() checked it
   }
   // Only the slice is walked to (its cubes' coordinates computed, given to `add`); the walk stops
-  // after it. A walk that reaches the body's end has counted all its leaves.
+  // after it.
   BodyDiff walk(nullptr, &map, resolution_, config_, add);
-  walk.set_range(first, last);
+  walk.set_window(from, to, limit);
   walk.run();
   flush();
   stats.voxel_updates += counts.voxel_updates;
   stats.block_updates += counts.block_updates;
-  return walk.stopped() ? SIZE_MAX : walk.changed_seen();
+  return walk.stopped() ? walk.window_end() : BodyDiff::kOrderEnd;
 }
 
 void GlobalFusion::move_step(Entry& entry, std::size_t step, GlobalFuseResult& stats) {
   const auto t0 = std::chrono::steady_clock::now();
-  const std::size_t end = step > SIZE_MAX - entry.moved ? SIZE_MAX : entry.moved + step;
-  const std::size_t leaves =
-      add_leaves(*entry.map, entry.moved, end, {{&entry.T_global_robot, -1}, {&*entry.T_to, +1}}, stats);
-  entry.moved = std::min(end, leaves);
-  if (entry.moved >= leaves) {
+  entry.boundary = add_leaves(*entry.map, entry.boundary, BodyDiff::kOrderEnd, std::max<std::size_t>(step, 1),
+                              {{&entry.T_global_robot, -1}, {&*entry.T_to, +1}}, stats);
+  if (entry.boundary >= BodyDiff::kOrderEnd) {
     entry.T_global_robot = *entry.T_to;
     entry.T_to.reset();
-    entry.moved = 0;
+    entry.boundary = 0;
   }
   stats.place_s += seconds_since(t0);
   stats.moving = entry.T_to.has_value();
 }
 
+GlobalFusion::Difference GlobalFusion::add_moving_difference(Entry& moving, std::shared_ptr<const HeldMap> map,
+                                                            GlobalFuseResult& stats) {
+  if (!moving.map->binary_body() || !map->binary_body()) return Difference::kTooFar;
+  const auto t0 = std::chrono::steady_clock::now();
+  BodyDiff diff(moving.map.get(), map.get(), resolution_, config_);
+  diff.set_split(moving.boundary);
+  if (!diff.run()) return Difference::kTooFar;
+  stats.from_bodies = true;
+  stats.work = diff.work;
+  stats.diff_s += seconds_since(t0);
+  if (diff.work > config_.max_work) {
+    stats.reason = "map would cost ~" + std::to_string(static_cast<long long>(diff.work)) +
+                   " voxel visits, more than max_work (huge pruned leaves?)";
+    return Difference::kRefused;
+  }
+  const auto t1 = std::chrono::steady_clock::now();
+  FuseResult counts;
+  map_cubes(*sums_, *moving.T_to, resolution_, diff.cubes, threads_, counts);  // the part moved already
+  map_cubes(*sums_, moving.T_global_robot, resolution_, diff.cubes_after, threads_, counts);  // still at the old pose
+  for (const auto* cubes : {&diff.cubes, &diff.cubes_after}) {
+    for (const ChangedCube& c : *cubes) grow(moving.extent, c.centre, c.size);
+    stats.cubes += cubes->size();
+  }
+  moving.map = std::move(map);
+  stats.place_s += seconds_since(t1);
+  stats.voxel_updates += counts.voxel_updates;
+  stats.block_updates += counts.block_updates;
+  return Difference::kPlaced;
+}
+
 void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stats, bool body_checked,
                             Eigen::AlignedBox3d* extent, const StagedLeaves* staged) {
   if (entry.T_to) {  // halfway through a move in steps: each part at its pose
-    add_leaves(*entry.map, 0, entry.moved, {{&*entry.T_to, sign}}, stats);
-    add_leaves(*entry.map, entry.moved, SIZE_MAX, {{&entry.T_global_robot, sign}}, stats);
+    add_leaves(*entry.map, 0, entry.boundary, SIZE_MAX, {{&*entry.T_to, sign}}, stats);
+    add_leaves(*entry.map, entry.boundary, BodyDiff::kOrderEnd, SIZE_MAX, {{&entry.T_global_robot, sign}}, stats);
     return;
   }
   const Eigen::Matrix4d& T = entry.T_global_robot;
@@ -761,14 +854,29 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
   const std::unique_ptr<StagedLeaves> staged = take_staged(*next.map);
   const auto it = robots_.find(robot);
   if (it != robots_.end() && it->second.T_to) {
-    // A move in steps under way: its next step, or (another map or pose) its end at once.
+    // A move in steps under way: its next step; or a new map of the same grid by its difference,
+    // each part at the pose that part is fused at, and the move goes on with it from where it is
+    // (no step in this call); or (another pose, no bodies to diff) the move's end at once.
     Entry& fused = it->second;
-    const bool go_on = fused.map == next.map && *fused.T_to == T_global_robot && move_step > 0;
-    this->move_step(fused, go_on ? move_step : SIZE_MAX, r);
-    if (go_on) {
-      r.ok = true;
-      return r;
+    if (move_step > 0 && *fused.T_to == T_global_robot) {
+      if (fused.map == next.map) {
+        this->move_step(fused, move_step, r);
+        r.ok = true;
+        return r;
+      }
+      if (same_grid(fused, *next.map)) {
+        const Difference d = add_moving_difference(fused, next.map, r);
+        if (d == Difference::kRefused) {
+          remove(robot);
+          return r;
+        }
+        if (d == Difference::kPlaced) {
+          r.ok = r.incremental = r.moving = true;
+          return r;
+        }
+      }
     }
+    this->move_step(fused, SIZE_MAX, r);
   }
   if (it != robots_.end() && it->second.map == next.map && it->second.T_global_robot == T_global_robot) {
     r.ok = true;

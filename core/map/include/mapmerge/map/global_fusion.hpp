@@ -97,9 +97,12 @@ class GlobalFusion {
   /// (its body's depth-first order): each call takes the next leaves out at the old pose and puts
   /// them in at the new one (GlobalFuseResult::moving until the last). In between, every leaf of
   /// the map counts once, at one of the two poses, so each step leaves a whole global map, and a
-  /// move of a large map does not hold back the updates of the others. A call with another map or
-  /// pose first finishes the move at once. Maps without a checked body move whole. A new map of
-  /// the same grid whose pose moved too far to keep goes in by its difference at the fused pose
+  /// move of a large map does not hold back the updates of the others. A new map of the same grid
+  /// sent to the pose the robot is moving to goes in at once by its difference, each changed part
+  /// at the pose of the part of the map it is in (GlobalFuseResult::moving; this call takes no
+  /// step), and the move goes on with the new map. A call with another pose, or a map that cannot
+  /// be diffed, first finishes the move at once. Maps without a checked body move whole. A new map
+  /// of the same grid whose pose moved too far to keep goes in by its difference at the fused pose
   /// (kept_pose), then moves in steps from the same call on.
   GlobalFuseResult set(const std::string& robot, std::shared_ptr<const HeldMap> map,
                        const Eigen::Matrix4d& T_global_robot, double keep_pose_within = 0.0,
@@ -179,10 +182,13 @@ class GlobalFusion {
     std::shared_ptr<const HeldMap> map;
     Eigen::Matrix4d T_global_robot;
     Eigen::AlignedBox3d extent;  ///< extent_of()
-    /// A move in steps: the first `moved` leaves of the map's body walk are fused at T_to, the
-    /// others still at T_global_robot.
+    /// A move in steps: the map's leaves (and parts of leaves) before `boundary` in its body's
+    /// depth-first order (a Morton code of the finest keys) are fused at T_to, the others still
+    /// at T_global_robot. A boundary is a point of the grid's order, not a count of one map's
+    /// leaves, so a new map takes the same boundary: each part of its difference goes in at the
+    /// pose its place is fused at.
     std::optional<Eigen::Matrix4d> T_to;
-    std::size_t moved = 0;
+    std::uint64_t boundary = 0;
     /// pose_of(): where the map is fused, or is moving to.
     const Eigen::Matrix4d& pose() const { return T_to ? *T_to : T_global_robot; }
   };
@@ -191,14 +197,21 @@ class GlobalFusion {
     const Eigen::Matrix4d* T;
     int sign;
   };
-  /// Places the leaves [first, last) of `map`'s body walk at each of `at`, walking the body only
-  /// as far as `last`; returns the map's number of leaves when the walk reached the body's end,
-  /// else SIZE_MAX (more leaves follow). The map must have a body whole_body() takes.
-  std::size_t add_leaves(const HeldMap& map, std::size_t first, std::size_t last,
-                         std::initializer_list<Placement> at, GlobalFuseResult& stats);
+  /// Places the leaves of `map` (parts of leaves, cut at the ends) whose places in the body's
+  /// depth-first order lie in [from, to) (Morton codes, Entry::boundary), at most `limit` of them,
+  /// at each of `at`, walking the body only as far as needed. Returns where the placed leaves
+  /// end (the end of the order when the walk reached the body's end). The map must have a body
+  /// whole_body() takes.
+  std::uint64_t add_leaves(const HeldMap& map, std::uint64_t from, std::uint64_t to, std::size_t limit,
+                           std::initializer_list<Placement> at, GlobalFuseResult& stats);
   /// The next `step` leaves of a moving entry to their new pose; ends the move after the last.
   /// Adds its time to `stats.place_s` and sets `stats.moving`.
   void move_step(Entry& entry, std::size_t step, GlobalFuseResult& stats);
+  enum class Difference { kPlaced, kRefused, kTooFar };
+  /// A new `map` of a moving entry (same grid, both with bodies) by its difference: each part at
+  /// the pose its place is fused at (either side of the boundary); the entry then holds `map`
+  /// and moves on from the same boundary. kTooFar: no bodies to diff (nothing placed).
+  Difference add_moving_difference(Entry& moving, std::shared_ptr<const HeldMap> map, GlobalFuseResult& stats);
   /// fuses_by_difference() for the robot's entry.
   bool same_grid(const Entry& fused, const HeldMap& map) const;
   /// `body_checked`: the entry's binary body was just scanned whole (as in set()): not again.
@@ -206,7 +219,6 @@ class GlobalFusion {
   /// read by stage() (null: its tree is walked).
   void add_full(const Entry& entry, int sign, GlobalFuseResult& stats, bool body_checked = false,
                 Eigen::AlignedBox3d* extent = nullptr, const StagedLeaves* staged = nullptr);
-  enum class Difference { kPlaced, kRefused, kTooFar };
   /// Places what changed from `before` to `after` at `after`'s pose, or at `before`'s when
   /// `keep_pose_within` > 0 and the poses are that close over the leaves (then `after` gets
   /// before's pose). kTooFar: the poses differ and are not that close (nothing placed).
