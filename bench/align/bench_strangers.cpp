@@ -12,6 +12,7 @@
 //   merge  - the whole-map search with its rescue (`mapmerge merge`'s default).
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <fstream>
 #include <iostream>
@@ -56,6 +57,7 @@ struct Outcome {
   bool accepted = false;
   bool wrong = false;  ///< accepted, and not where the part belongs
   double fitness = 0, overlap = 0, inlier_share = 0, seconds = 0;
+  double limit = 0;  ///< validate.max_fitness x the coarser map's resolution [m]
   std::string reason;
 };
 
@@ -134,6 +136,8 @@ int main(int argc, char** argv) {
             const bool where_it_belongs = halves && mapmerge::bench::errors(r.T_target_source, T).success();
             Outcome o{pair, s.name, r.accepted, r.accepted && !where_it_belongs,
                       r.fitness, r.overlap, r.inlier_share, std::chrono::duration<double>(Clock::now() - t0).count(),
+                      s.config.validate.max_fitness *
+                          std::max(target.tree->getResolution(), source.tree->getResolution()),
                       r.reason};
             std::cerr << pair << " [" << s.name << "]: "
                       << (o.wrong ? "WRONG MERGE" : o.accepted ? "accepted where it belongs" : "refused") << " f "
@@ -168,6 +172,23 @@ int main(int argc, char** argv) {
       md << "| " << s.name << " | " << t.size() << " | " << wrong << " | " << fmt(t.empty() ? NAN : t[t.size() / 2], 2)
          << " |\n";
     }
+    // How close the strangers came: fitness over its limit, for the refused cases with a finite
+    // fitness, and for those that also pass the free-space test (the inlier share), so would be
+    // accepted on fitness alone: the margin the fitness test keeps on its own.
+    const auto closest = [&](bool passing_free_space) {
+      const Outcome* best = nullptr;
+      for (const Outcome& o : outcomes) {
+        if (o.accepted || !std::isfinite(o.fitness) || o.fitness <= 0.0) continue;
+        if (passing_free_space && o.inlier_share < base.validate.min_inlier_share) continue;
+        if (best == nullptr || o.fitness / o.limit < best->fitness / best->limit) best = &o;
+      }
+      return best == nullptr ? std::string("none")
+                             : fmt(best->fitness / best->limit, 3) + "x (" + best->pair + ", " + best->search +
+                                   ", inlier share " + fmt(best->inlier_share) + ")";
+    };
+    md << "\nClosest refusal by fitness (fitness / its limit, validate.max_fitness x the coarser resolution): "
+       << closest(false) << "; among the refusals whose inlier share passes the free-space test (>= "
+       << fmt(base.validate.min_inlier_share) << "): " << closest(true) << ".\n";
     md << "\n## Cases\n\n| pair | search | accepted | fitness [m] | overlap | inlier share | t [s] | reason |\n"
           "|---|---|---|---|---|---|---|---|\n";
     for (const Outcome& o : outcomes) {
