@@ -81,9 +81,10 @@ bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Con
     if (fusion_->moving(m.robot)) {
       // Halfway through a move in steps, to the pose it is moving to. A new map goes in now by its
       // difference (each part at the pose its place is fused at) and the move goes on with it in
-      // the builds after; otherwise its next step. A new pose waits for the move's end (finishing
-      // the move at once would hold everyone's updates).
-      const bool new_map = m.map != fused_map && fusion_->fuses_by_difference(m.robot, *m.map);
+      // the builds after; otherwise its next step. A new pose, or a map without a checked body to
+      // diff, waits for the move's end (finishing the move at once would hold everyone's updates).
+      const bool new_map =
+          m.map != fused_map && m.map->binary_body() && fusion_->fuses_by_difference(m.robot, *m.map);
       later |= m.T_global_robot != *fused || (m.map != fused_map && !new_map);  // held: a build after
       m.T_global_robot = *fused;
       m.keep_pose_within = 0.0;
