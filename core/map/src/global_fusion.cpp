@@ -572,12 +572,28 @@ void place_cubes(detail::SumTree& sums, const Eigen::Matrix4d& T, double res, co
   map_cubes(sums, T, res, negated, threads, counts);
 }
 
+/// A leaf as stage() keeps it: its key and depth in the map's tree, 12 B instead of TreeLeaf's
+/// 40 (a `.ot` map of 0.8 M leaves: ~9 MB instead of ~31 MB of fresh pages). Its centre and
+/// size are the tree's keyToCoord() and getNodeSize() of them, as the leaf iterator gives them.
+struct StagedLeaf {
+  octomap::OcTreeKey key;
+  std::uint8_t depth = 0;
+  float log_odds = 0.0F;
+};
+
+/// The TreeLeaf of a staged leaf of `tree`: the same numbers for_each_tree_leaf() gives.
+TreeLeaf tree_leaf(const octomap::OcTree& tree, const StagedLeaf& l) {
+  return TreeLeaf{Eigen::Vector3d(tree.keyToCoord(l.key[0], l.depth), tree.keyToCoord(l.key[1], l.depth),
+                                  tree.keyToCoord(l.key[2], l.depth)),
+                  tree.getNodeSize(l.depth), l.log_odds};
+}
+
 }  // namespace
 
 struct GlobalFusion::StagedLeaves {
   std::shared_ptr<const HeldMap> map;
   double work = 0.0;  ///< estimate_work() of the map
-  std::vector<TreeLeaf> leaves;
+  std::vector<StagedLeaf> leaves;
 };
 
 GlobalFusion::GlobalFusion(double resolution, const FuseConfig& config)
@@ -597,12 +613,15 @@ void GlobalFusion::stage(std::shared_ptr<const HeldMap> map) {
   if (!map || walkable_body(*map, resolution_)) return;  // its body is read in one pass anyway
   auto staged = std::make_unique<StagedLeaves>();
   const std::shared_ptr<const octomap::OcTree> tree = map->tree();
-  // One walk gives the leaves and their work (estimate_work's sum).
+  // One walk gives the leaves and their work (estimate_work's sum). Room for every node: only
+  // the pages the leaves fill are touched, and none is copied as the vector would grow.
   const float occupied = tree->getOccupancyThresLog();
-  for_each_tree_leaf(*tree, [&](const TreeLeaf& leaf) {
-    staged->work += detail::leaf_work(leaf.size, leaf.log_odds >= occupied, resolution_, config_.fuse_free);
-    staged->leaves.push_back(leaf);
-  });
+  staged->leaves.reserve(map->num_nodes());
+  for (auto it = tree->begin_leafs(), end = tree->end_leafs(); it != end; ++it) {
+    const float log_odds = it->getLogOdds();
+    staged->work += detail::leaf_work(it.getSize(), log_odds >= occupied, resolution_, config_.fuse_free);
+    staged->leaves.push_back({it.getKey(), static_cast<std::uint8_t>(it.getDepth()), log_odds});
+  }
   staged->map = std::move(map);
   staged_ = std::move(staged);
 }
@@ -777,7 +796,8 @@ void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stat
     if (!inserted) vote->second = std::max(vote->second, leaf.log_odds);
   };
   if (staged) {
-    for (const TreeLeaf& leaf : staged->leaves) place(leaf);
+    const std::shared_ptr<const octomap::OcTree> tree = staged->map->tree();
+    for (const StagedLeaf& leaf : staged->leaves) place(tree_leaf(*tree, leaf));
   } else {
     for_each_tree_leaf(*entry.map->tree(), place);
   }

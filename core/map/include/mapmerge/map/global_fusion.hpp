@@ -115,7 +115,7 @@ class GlobalFusion {
   /// Reads `map`'s leaves and their fusion work ahead of a set() of that map, so that set() only
   /// places them: e.g. while the map's pose is still being found. Only a map without a checked
   /// binary body gains (its octree is walked here, not in set(); a body is read in one pass over
-  /// bytes anyway, so for it this does nothing). Keeps one map's leaves (~40 B a leaf) until the
+  /// bytes anyway, so for it this does nothing). Keeps one map's leaves (12 B a leaf) until the
   /// set() of that map, or the next stage().
   void stage(std::shared_ptr<const HeldMap> map);
   /// Threads set() and encode() may work on at once (default: one per core, at most 4; 1: the
