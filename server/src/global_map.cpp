@@ -89,10 +89,8 @@ bool GlobalMapBuilder::defer_moves(std::vector<PlacedMap>& maps, std::vector<Con
       m.T_global_robot = *fused;
       m.keep_pose_within = 0.0;
       if (new_map) {
-        grown = true;
-        continue;
-      }
-      if (m.map != fused_map) {
+        grown = true;  // its content goes out now; its step (sync_global's second set()) as any other
+      } else if (m.map != fused_map) {
         m.map = fused_map;
         fused_contribution(i);
       }

@@ -98,7 +98,11 @@ GlobalSync sync_global(GlobalFusion& fusion, const std::vector<PlacedMap>& maps,
     if (!listed) fusion.remove(robot);
   }
   for (const PlacedMap& m : maps) {
-    if (m.hold_step && fusion.moving(m.robot)) {
+    // A new map of a robot moving in steps goes in by its difference without a step (set()); its
+    // step is a second set() of the same map, unless held, so that a robot publishing at every
+    // build still ends its move.
+    const bool new_map_moving = fusion.moving(m.robot) && fusion.map_of(m.robot) != m.map;
+    if (m.hold_step && fusion.moving(m.robot) && !new_map_moving) {
       out.fused.push_back(m.robot);
       ++out.moving;
       continue;
@@ -110,9 +114,16 @@ GlobalSync sync_global(GlobalFusion& fusion, const std::vector<PlacedMap>& maps,
     const auto r = refused.find(m.robot);
     if (r != refused.end() && r->second.first.lock() == m.map && r->second.second == m.T_global_robot) continue;
     try {
-      const GlobalFuseResult res =
+      GlobalFuseResult res =
           fusion.set(m.robot, m.map, m.T_global_robot, m.keep_pose_within, move_step);  // !ok: left out
       if (!res.ok) throw MapError(res.reason);
+      if (new_map_moving && res.moving && !m.hold_step) {
+        const GlobalFuseResult step = fusion.set(m.robot, m.map, m.T_global_robot, 0.0, move_step);
+        if (!step.ok) throw MapError(step.reason);
+        res.cubes += step.cubes;
+        res.place_s += step.place_s;
+        res.moving = step.moving;
+      }
       refused.erase(m.robot);
       out.fused.push_back(m.robot);
       ++out.updated;

@@ -1281,14 +1281,27 @@ TEST(GlobalMapBuilder, AMovedRobotGoesInStepsAndAnotherRobotsUpdateGoesOutInBetw
   EXPECT_EQ(builder.last_stages().incremental, 1u);
   EXPECT_EQ(builder.last_stages().moving, 1u);
   EXPECT_TRUE(builder.deferred()) << "the move goes on";
+  // r2 sends a new map for every build: its move still ends (its step goes with its new map,
+  // every other build at least).
   last = halfway;
+  std::uint64_t sequence = 3;
+  int builds = 0;
+  for (; builder.last_stages().moving > 0 && builds < 20; ++builds) {
+    ++sequence;
+    registry.put_map(received_record_of(test::cut_robot_map(*world, "r2", box(4, sequence % 2 == 0 ? 30 : 31), T2),
+                                        sequence));
+    last = builder.build(registry, ++version);
+    ASSERT_TRUE(last);
+    EXPECT_EQ(sequence_of(*last, "r2"), sequence) << "r2's own update waited for its move";
+  }
+  EXPECT_LT(builds, 20) << "a robot that sends a map for every build never ends its move";
   const std::uint64_t stop = version + 20;
   while (builder.deferred() && version < stop) {
     last = builder.build(registry, ++version);
     ASSERT_TRUE(last);
   }
   EXPECT_FALSE(builder.deferred());
-  EXPECT_EQ(sequence_of(*last, "r2"), 3u);
+  EXPECT_EQ(sequence_of(*last, "r2"), sequence);
   const auto expected_again = GlobalMapBuilder(config).build(registry, 99);
   ASSERT_TRUE(expected_again);
   EXPECT_TRUE(last->data == expected_again->data) << "after the second move, the map differs from a fresh build";

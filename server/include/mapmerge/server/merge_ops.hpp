@@ -60,7 +60,8 @@ struct PlacedMap {
   /// GlobalFusion::set's keep_pose_within [m]: a fused robot whose map changed is fused at its
   /// fused pose when no leaf of the map lands this far from where T_global_robot puts it.
   double keep_pose_within = 0.0;
-  /// A robot moving in steps (GlobalFusion::moving) takes no step in this sync: it stays as it is.
+  /// A robot moving in steps (GlobalFusion::moving) takes no step in this sync: it stays as it is
+  /// (a new map of it still goes in, by its difference).
   bool hold_step = false;
 };
 
