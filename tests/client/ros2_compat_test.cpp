@@ -148,8 +148,12 @@ TEST_F(Ros2Compat, CycloneRos2NodeJoinsAndReceivesTfAndTheGlobalMap) {
       if (t.child == "r2/map") tf = t;
     }
     if (auto g = node.take_global_map()) {
-      // Wait for the version holding both robots (the first may hold r1 alone).
-      if (tf) global = g;
+      // Wait for a version holding both robots: one holding r1 alone may still arrive after r2's
+      // transform (a republish, or a build under load).
+      if (tf) {
+        DecodeResult d = decode_tree_body(g->id, g->resolution, g->binary, g->data, DecodeLimits{});
+        if (d.ok() && test::occupied_volume(*d.tree) > 1.2 * test::occupied_volume(*map1)) global = g;
+      }
     }
     std::this_thread::sleep_for(50ms);
   }
@@ -160,14 +164,13 @@ TEST_F(Ros2Compat, CycloneRos2NodeJoinsAndReceivesTfAndTheGlobalMap) {
   EXPECT_LT(error.translation_m, kMaxTranslationErrorM);
 
   // The global map, as octomap_rviz_plugins reads it (octomap_msgs::binaryMsgToMap).
-  ASSERT_TRUE(global) << "no global map on " << wire::kRosGlobalMapTopic;
+  ASSERT_TRUE(global) << "no global map holding r2's strip too on " << wire::kRosGlobalMapTopic << "\n"
+                      << server_log();
   EXPECT_EQ(global->id, "OcTree");
   EXPECT_TRUE(global->binary);
   EXPECT_EQ(global->frame, "global");
   DecodeResult decoded = decode_tree_body(global->id, global->resolution, global->binary, global->data, DecodeLimits{});
   ASSERT_TRUE(decoded.ok()) << decoded.reason;
-  EXPECT_GT(test::occupied_volume(*decoded.tree), 1.2 * test::occupied_volume(*map1))
-      << "the global map should hold r2's strip too";
 
   // The ROS 2 robot is a robot like any other on the native pose topic too.
   ASSERT_TRUE(r1.wait_for_server(10s));
