@@ -140,6 +140,7 @@ TEST_F(Ros2Compat, CycloneRos2NodeJoinsAndReceivesTfAndTheGlobalMap) {
   const auto map2 = read_octree_file(map_path("r2"));
   ASSERT_TRUE(node.publish_map(*map2, "r2/map"));
 
+  const double r1_volume = test::occupied_volume(*map1);
   std::optional<Ros2Node::Transform> tf;
   std::optional<Ros2Node::RosMap> global;
   const auto deadline = std::chrono::steady_clock::now() + kAlignment;
@@ -152,7 +153,7 @@ TEST_F(Ros2Compat, CycloneRos2NodeJoinsAndReceivesTfAndTheGlobalMap) {
       // transform (a republish, or a build under load).
       if (tf) {
         DecodeResult d = decode_tree_body(g->id, g->resolution, g->binary, g->data, DecodeLimits{});
-        if (d.ok() && test::occupied_volume(*d.tree) > 1.2 * test::occupied_volume(*map1)) global = g;
+        if (d.ok() && test::occupied_volume(*d.tree) > 1.2 * r1_volume) global = g;
       }
     }
     std::this_thread::sleep_for(50ms);

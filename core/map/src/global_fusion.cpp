@@ -41,6 +41,12 @@ void grow(Eigen::AlignedBox3d& box, const Eigen::Vector3d& centre, double size) 
   box.extend(centre + half);
 }
 
+/// Why a map whose fusion would cost `work` voxel visits (more than FuseConfig::max_work) is refused.
+std::string work_refusal(double work) {
+  return "map would cost ~" + std::to_string(static_cast<long long>(work)) +
+         " voxel visits, more than max_work (huge pruned leaves?)";
+}
+
 /// A region of a robot map's frame whose evidence changed, as a cube of the map's grid.
 struct ChangedCube {
   Eigen::Vector3d centre;
@@ -732,8 +738,7 @@ GlobalFusion::Difference GlobalFusion::add_moving_difference(Entry& moving, std:
   stats.work = diff.work;
   stats.diff_s += seconds_since(t0);
   if (diff.work > config_.max_work) {
-    stats.reason = "map would cost ~" + std::to_string(static_cast<long long>(diff.work)) +
-                   " voxel visits, more than max_work (huge pruned leaves?)";
+    stats.reason = work_refusal(diff.work);
     return Difference::kRefused;
   }
   const auto t1 = std::chrono::steady_clock::now();
@@ -833,8 +838,7 @@ GlobalFusion::Difference GlobalFusion::add_difference(const Entry& before, Entry
   stats.work = work;
   stats.diff_s += seconds_since(t0);
   if (work > config_.max_work) {
-    stats.reason = "map would cost ~" + std::to_string(static_cast<long long>(work)) +
-                   " voxel visits, more than max_work (huge pruned leaves?)";
+    stats.reason = work_refusal(work);
     return Difference::kRefused;
   }
   if (after.T_global_robot != before.T_global_robot) {
@@ -931,8 +935,7 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
     r.diff_s += seconds_since(t0);
     r.ok = work <= config_.max_work;
     if (!r.ok) {
-      r.reason = "map would cost ~" + std::to_string(static_cast<long long>(work)) +
-                 " voxel visits, more than max_work (huge pruned leaves?)";
+      r.reason = work_refusal(work);
     } else if (move_step > 0 && body && it != robots_.end() && it->second.map == next.map) {
       // The same map at a new pose: moved in steps, this call the first (no move under way: the
       // first block ended it).
