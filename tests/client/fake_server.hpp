@@ -40,7 +40,8 @@ class FakeServer {
   void listen_to(const std::string& robot) {
     auto& p = *participant_;
     map_readers_.push_back(MapListener{
-        robot, p.create_reader(p.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic(robot)), wire::TopicKind::State)});
+        robot, p.create_reader(p.topic<mapmerge::MapUpdatePubSubType>(wire::map_topic(robot)), wire::TopicKind::State),
+        std::nullopt});
   }
 
   /// The next new map update of `robot`, waiting up to `timeout`. A client may send its last
