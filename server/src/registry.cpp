@@ -238,7 +238,7 @@ Registry::AlignmentUse::~AlignmentUse() {
 
 bool Registry::alignment_data_idle_locked(const std::string& robot, const RobotRecord& rec,
                                           Clock::time_point cutoff) const {
-  if (!rec.map || (!rec.prepared && !(rec.map->binary_body() && rec.map->has_tree()))) return false;
+  if (!rec.map || (!rec.prepared && !(rec.map->has_body() && rec.map->has_tree()))) return false;
   if (alignment_holds_.count(robot) != 0) return false;
   const auto used = alignment_use_.find(robot);
   return used == alignment_use_.end() || used->second < cutoff;

@@ -7,8 +7,10 @@
 #include <Eigen/Geometry>
 
 #include "mapmerge/align/stages.hpp"
+#include "mapmerge/map/bounds.hpp"
 #include "mapmerge/map/crop.hpp"
 #include "mapmerge/map/held_map.hpp"
+#include "mapmerge/map/leaf_set.hpp"
 #include "mapmerge/map/map_codec.hpp"
 #include "mapmerge/map/map_io.hpp"
 
@@ -88,6 +90,56 @@ TEST(ToPoints, ABinaryBodyGivesItsTreesPointsInTheTreesOrderWithoutBuildingIt) {
     EXPECT_THROW(ma::to_points(*held, tight), std::invalid_argument);
   }
   EXPECT_EQ(held_bt(pruned)->occupied_leaves()->size(), 2U);  // the 4x4x4 block is one leaf
+}
+
+TEST(ToPoints, AFullBodyGivesItsTreesPointsLeavesAndBoundsWithoutBuildingIt) {
+  // A `.ot` map is kept as its full body (log-odds per node): its points (with each leaf's own
+  // occupancy), free and occupied leaf sets and bounds must be its tree's, read off the bytes.
+  octomap::OcTree graded(0.1);  // a pruned block, leaves of graded log-odds, free space
+  for (int i = 0; i < 4; ++i)
+    for (int j = 0; j < 4; ++j)
+      for (int k = 0; k < 4; ++k) graded.updateNode(-0.35 + 0.1 * i, 0.05 + 0.1 * j, -0.35 + 0.1 * k, true);
+  for (int i = 0; i < 6; ++i) {
+    for (int n = 0; n <= i; ++n) graded.updateNode(1.05 + 0.1 * i, -1.05, 0.55, n % 3 != 2);
+  }
+  graded.updateNode(-2.05, 2.05, -0.05, false);
+  graded.prune();
+  auto geb = mapmerge::read_octree_file(std::string(MAPMERGE_DATA_DIR) + "/geb079.bt");
+  std::size_t i = 0;  // every 5th occupied leaf one miss (still occupied), every 11th three (free)
+  std::vector<octomap::OcTreeKey> missed, emptied;
+  for (auto it = geb->begin_leafs(), end = geb->end_leafs(); it != end; ++it, ++i) {
+    if (!geb->isNodeOccupied(*it) || it.getDepth() != geb->getTreeDepth()) continue;
+    if (i % 11 == 0) emptied.push_back(it.getKey());
+    else if (i % 5 == 0) missed.push_back(it.getKey());
+  }
+  for (const auto& k : missed) geb->updateNode(k, false);
+  for (const auto& k : emptied)
+    for (int n = 0; n < 3; ++n) geb->updateNode(k, false);
+  ASSERT_GT(missed.size(), 100U);
+  for (const auto& [tree, threshold] : {std::pair<const octomap::OcTree*, float>{&graded, 0.8F}, {geb.get(), 0.96F}}) {
+    const auto ot = mapmerge::encode_map(*tree, mapmerge::Encoding::kOctomapOt);
+    const mapmerge::CheckedMap c = mapmerge::check_map(ot.data(), ot.size(), mapmerge::Encoding::kOctomapOt, {});
+    ASSERT_TRUE(c.ok() && c.map) << c.reason;
+    const auto& held = c.map;
+    ASSERT_TRUE(held->full_body());
+    expect_same_points(ma::to_points(*held, {}), ma::to_points(*tree, {}));
+    ma::ToPointsConfig sure;
+    sure.min_occupancy = threshold;  // leaves below it are dropped, each by its own occupancy
+    const auto fewer = ma::to_points(*held, sure);
+    expect_same_points(fewer, ma::to_points(*tree, sure));
+    EXPECT_LT(fewer.size(), ma::to_points(*tree, {}).size());
+    EXPECT_GT(fewer.size(), 0U);
+    for (const auto state : {mapmerge::LeafState::kOccupied, mapmerge::LeafState::kFree}) {
+      const mapmerge::LeafSet a = mapmerge::LeafSet::of(*held, state), b = mapmerge::LeafSet::of(*tree, state);
+      ASSERT_EQ(a.size(), b.size());
+      ASSERT_GT(a.size(), 0U);
+      for (std::size_t k = 0; k < a.size(); ++k) ASSERT_EQ(a.centre(k), b.centre(k)) << k;
+    }
+    const Eigen::AlignedBox3d box = mapmerge::leaf_bounds(*held), tree_box = mapmerge::leaf_bounds(*tree);
+    EXPECT_EQ(box.min(), tree_box.min());
+    EXPECT_EQ(box.max(), tree_box.max());
+    EXPECT_FALSE(held->has_tree()) << "read off the body";
+  }
 }
 
 TEST(Fitness, HandComputedCase) {

@@ -560,18 +560,18 @@ TEST_F(GlobalFusionTest, AMoveInStepsKeepsEveryLeafOnceAndEndsAsAFusionAtTheNewP
   }
   const auto m2_coarse = checked(coarse_tree);
   const auto m2_coarse_free = checked(coarse_free_tree);
-  const auto new_maps = [&](GlobalFusion& g) {
-    started(g);
+  const auto new_maps = [&](GlobalFusion& fusion) {
+    started(fusion);
     for (const auto& [next, step_after] : {std::pair{m2_grown, true}, std::pair{m2_coarse, false},
                                            std::pair{m2_coarse_free, true}, std::pair{m2, true}}) {
-      const GlobalFuseResult r = g.set("r2", next, moved, 0.0, step);
+      const GlobalFuseResult r = fusion.set("r2", next, moved, 0.0, step);
       ASSERT_TRUE(r.ok);
       EXPECT_TRUE(r.moving && r.incremental && r.from_bodies) << "a new map halfway goes in by its difference";
-      EXPECT_TRUE(g.map_of("r2") == next);
+      EXPECT_TRUE(fusion.map_of("r2") == next);
       if (step_after) {
-        ASSERT_TRUE(g.set("r2", next, moved, 0.0, step / 4).ok);  // the move's next step, with the new map
+        ASSERT_TRUE(fusion.set("r2", next, moved, 0.0, step / 4).ok);  // the move's next step, with the new map
       }
-      ASSERT_TRUE(g.moving("r2"));
+      ASSERT_TRUE(fusion.moving("r2"));
     }
   };
   GlobalFusion grew(res);
@@ -732,6 +732,80 @@ TEST_F(GlobalFusionTest, RefusedMapsLeaveTheRobotOutAndTheOthersIntact) {
   GlobalFusion small(res, tight);
   EXPECT_FALSE(small.set("r1", r1.map, T_global(r1)).ok);
   EXPECT_TRUE(small.empty());
+}
+
+TEST_F(GlobalFusionTest, AFullBodyIsPlacedAsItsTreeWithoutBuildingIt) {
+  // A `.ot` map is held as its full body (log-odds kept): placed, removed and staged off its
+  // bytes, it must give the bytes its tree gives, on its own grid, a coarser and a finer one.
+  const Robot r1 = cut(*world_, "r1", -20, -2, 0.0);
+  const Robot r2 = cut(*world_, "r2", -8, 6, 1.1);
+  auto graded = std::make_shared<octomap::OcTree>(*r2.map);  // log-odds not all at a bound
+  std::vector<octomap::OcTreeKey> keys;
+  std::size_t i = 0;
+  for (auto it = graded->begin_leafs(), end = graded->end_leafs(); it != end; ++it, ++i) {
+    if (i % 3 == 0 && it.getDepth() == graded->getTreeDepth()) keys.push_back(it.getKey());
+  }
+  for (std::size_t k = 0; k < keys.size(); ++k) graded->updateNode(keys[k], k % 2 == 0);
+  const auto full = [](const octomap::OcTree& tree) {
+    const auto ot = encode_map(tree, Encoding::kOctomapOt);
+    const CheckedMap c = check_map(ot.data(), ot.size(), Encoding::kOctomapOt, {});
+    EXPECT_TRUE(c.ok() && c.map && c.map->full_body()) << c.reason;
+    return c.map;
+  };
+  const auto t1 = std::make_shared<const HeldMap>(r1.map), t2 = std::make_shared<const HeldMap>(graded);
+  const auto f1 = full(*r1.map), f2 = full(*graded);
+  for (const double res : {world_->getResolution(), 0.2, world_->getResolution() / 2}) {
+    GlobalFusion trees(res), bodies(res), staged(res);
+    for (auto* g : {&trees, &bodies, &staged}) g->set_threads(2);
+    ASSERT_TRUE(trees.set("r1", t1, T_global(r1)).ok);
+    ASSERT_TRUE(trees.set("r2", t2, T_global(r2)).ok);
+    ASSERT_TRUE(bodies.set("r1", f1, T_global(r1)).ok);
+    const GlobalFuseResult b = bodies.set("r2", f2, T_global(r2));
+    ASSERT_TRUE(b.ok);
+    EXPECT_GT(b.cubes, 1000U);
+    staged.stage(f1);
+    ASSERT_TRUE(staged.set("r1", f1, T_global(r1)).ok);
+    staged.stage(f2);
+    const GlobalFuseResult s = staged.set("r2", f2, T_global(r2));
+    ASSERT_TRUE(s.ok);
+    EXPECT_EQ(b.work, s.work);
+    EXPECT_TRUE(trees.encode().bt == bodies.encode().bt) << "full bodies and trees differ at " << res << " m";
+    EXPECT_TRUE(trees.encode().bt == staged.encode().bt) << "staged full bodies differ at " << res << " m";
+    trees.remove("r2");
+    bodies.remove("r2");
+    EXPECT_TRUE(trees.encode().bt == bodies.encode().bt) << "a full body's removal differs at " << res << " m";
+  }
+  EXPECT_FALSE(f1->has_tree());
+  EXPECT_FALSE(f2->has_tree());
+}
+
+TEST_F(GlobalFusionTest, AMapOnItsOwnGridIsItsOwnGlobalMap) {
+  // A map at the identity pose on a grid of its resolution is added leaf by leaf, not resampled
+  // (the anchor robot; the target of `mapmerge merge`). Alone, its global map is its own bytes,
+  // whichever way it is held; with a second map it is the same as fused after a resampled one.
+  const auto bt = encode_map(*world_, Encoding::kOctomapBt);
+  const auto ot = encode_map(*world_, Encoding::kOctomapOt);
+  const std::shared_ptr<const HeldMap> held[] = {
+      check_map(bt.data(), bt.size(), Encoding::kOctomapBt, {}).map,
+      check_map(ot.data(), ot.size(), Encoding::kOctomapOt, {}).map,
+      std::make_shared<const HeldMap>(Tree(new octomap::OcTree(*world_)))};
+  const Robot r2 = cut(*world_, "r2", -8, 6, 1.1);
+  GlobalFusion after_other(world_->getResolution());
+  ASSERT_TRUE(after_other.set("r2", r2.map, T_global(r2)).ok);
+  ASSERT_TRUE(after_other.set("w", held[0], Eigen::Matrix4d::Identity()).ok);
+  const auto both = after_other.encode().bt;
+  for (const auto& map : held) {
+    ASSERT_TRUE(map);
+    GlobalFusion g(world_->getResolution());
+    const GlobalFuseResult r = g.set("w", map, Eigen::Matrix4d::Identity());
+    ASSERT_TRUE(r.ok);
+    EXPECT_EQ(r.voxel_updates + r.block_updates, r.cubes);
+    EXPECT_TRUE(g.encode().bt == bt) << "the map alone is not its own bytes";
+    ASSERT_TRUE(g.set("r2", r2.map, T_global(r2)).ok);
+    EXPECT_TRUE(g.encode().bt == both) << "placed before or after another map: not the same sums";
+    g.remove("r2");
+    EXPECT_TRUE(g.encode().bt == bt);
+  }
 }
 
 TEST_F(GlobalFusionTest, AStagedMapIsPlacedAsAnUnstagedOne) {

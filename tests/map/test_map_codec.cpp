@@ -77,12 +77,18 @@ TEST_P(RealMap, CheckedMapBuildsItsTreeOnlyWhenAskedAndItIsTheDecodedTree) {
   EXPECT_TRUE(checked.map->has_tree());
   EXPECT_EQ(checked.map->tree(), tree);  // built once
   EXPECT_EQ(encode_map(*tree, Encoding::kOctomapBt), bytes);
-  // A full-format payload has no binary body to keep: decoded at once.
+  // A full-format payload is kept as its full body the same way, its tree built when asked.
   const auto full = encode_map(*decoded.tree, Encoding::kOctomapOt);
   const CheckedMap ot = check_map(full, "octomap-ot", DecodeLimits{});
   ASSERT_TRUE(ot.ok() && ot.map) << ot.reason;
-  EXPECT_TRUE(ot.map->has_tree());
+  EXPECT_FALSE(ot.map->has_tree());
   EXPECT_EQ(ot.map->binary_body(), nullptr);
+  ASSERT_NE(ot.map->full_body(), nullptr);
+  EXPECT_EQ(ot.map->num_nodes(), decoded.num_nodes);
+  EXPECT_EQ(encode_map(*ot.map->tree(), Encoding::kOctomapOt), full);
+  EXPECT_TRUE(ot.map->has_tree());
+  EXPECT_TRUE(ot.map->release_tree());  // the body stays: the tree can be let go of
+  EXPECT_FALSE(ot.map->has_tree());
 }
 
 TEST_P(RealMap, DecodedTreeEqualsOctomapsOwnReaderNodeForNode) {
@@ -519,9 +525,12 @@ TEST(Codec, ReadMapFileChecksAsReadOctreeFileAndKeepsABtFilesBody) {
   EXPECT_EQ(empty->num_nodes(), 0U);
   EXPECT_DOUBLE_EQ(empty->resolution(), 0.05);
   write_octree_file(*tree, dir + "geb079.ot");
-  const auto full = read_map_file(dir + "geb079.ot");  // a full body is decoded at once
+  const auto full = read_map_file(dir + "geb079.ot");  // kept as its full body
   EXPECT_FALSE(full->binary_body());
+  ASSERT_TRUE(full->full_body());
+  EXPECT_FALSE(full->has_tree());
   EXPECT_EQ(full->num_nodes(), tree->size());
+  EXPECT_EQ(full->tree()->size(), tree->size());
 }
 
 /// OctoMap's own extent (one leaf iteration per call) against leaf_bounds().

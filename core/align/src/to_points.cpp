@@ -86,14 +86,23 @@ std::vector<OccupiedPoint> to_points(const octomap::OcTree& tree, const ToPoints
 }
 
 std::vector<OccupiedPoint> to_points(const HeldMap& map, const ToPointsConfig& config) {
-  if (!map.binary_body()) return to_points(*map.tree(), config);
+  if (!map.has_body()) return to_points(*map.tree(), config);
   std::vector<OccupiedPoint> points;
-  // A binary body's occupied leaves all stand for the tree's upper clamping bound.
-  const auto occupancy = static_cast<float>(octomap::probability(map.occupied_log_odds()));
-  if (occupancy < config.min_occupancy) return points;
   const double res = map.resolution();
+  if (map.binary_body()) {
+    // A binary body's occupied leaves all stand for the tree's upper clamping bound.
+    const auto occupancy = static_cast<float>(octomap::probability(map.occupied_log_odds()));
+    if (occupancy < config.min_occupancy) return points;
+    map.for_each_leaf([&](const BodyLeaf& leaf) {
+      if (leaf.occupied) add_block(points, leaf.centre, leaf.size, occupancy, res, config);
+    });
+    return points;
+  }
+  // A full body's leaves keep their own log-odds (OcTreeNode::getOccupancy of each).
   map.for_each_leaf([&](const BodyLeaf& leaf) {
-    if (leaf.occupied) add_block(points, leaf.centre, leaf.size, occupancy, res, config);
+    if (!leaf.occupied) return;
+    const auto occupancy = static_cast<float>(octomap::probability(leaf.log_odds));
+    if (occupancy >= config.min_occupancy) add_block(points, leaf.centre, leaf.size, occupancy, res, config);
   });
   return points;
 }

@@ -63,6 +63,8 @@ std::optional<DecodeResult> inflate(const std::uint8_t* data, std::size_t size,
 
 /// The octree of a binary body that passed decode_body()'s pre-pass (never for unchecked bytes).
 std::unique_ptr<octomap::OcTree> build_checked_binary_tree(double res, const std::vector<std::uint8_t>& body);
+/// The octree of a full body that passed decode_body()'s pre-pass (OcTree::readData's nodes).
+std::unique_ptr<octomap::OcTree> build_checked_full_tree(double res, const std::vector<std::uint8_t>& body);
 
 /// Compresses `raw` into one zstd frame with content size and checksum. Throws MapError.
 std::vector<std::uint8_t> deflate(const std::vector<std::uint8_t>& raw, int level);

@@ -490,6 +490,31 @@ void for_each_tree_leaf(const octomap::OcTree& tree, Leaf&& leaf) {
   }
 }
 
+/// Calls `leaf` with every leaf of a map's full (`.ot`) body, in the order of the leaf iterator
+/// of its tree and with the same numbers (its tree is not built).
+template <class Leaf>
+void for_each_full_body_leaf(const HeldMap& map, Leaf&& leaf) {
+  const double res = map.resolution();
+  detail::for_each_full_leaf(*map.full_body(), [&](float log_odds, unsigned depth, std::uint32_t x, std::uint32_t y,
+                                                   std::uint32_t z) {
+    leaf(TreeLeaf{Eigen::Vector3d(detail::leaf_coord(x, depth, res), detail::leaf_coord(y, depth, res),
+                                  detail::leaf_coord(z, depth, res)),
+                  detail::leaf_size(depth, res), log_odds});
+  });
+}
+
+/// estimate_work() of a map without a binary body: off its full body when it has one (log-odds
+/// >= 0 occupied: the tree's threshold), else off its tree.
+double tree_map_work(const HeldMap& map, double target_res, bool fuse_free) {
+  if (!map.full_body()) return detail::estimate_work(*map.tree(), target_res, fuse_free);
+  double work = 0.0;
+  detail::for_each_full_leaf(*map.full_body(), [&](float log_odds, unsigned depth, std::uint32_t, std::uint32_t,
+                                                   std::uint32_t) {
+    work += detail::leaf_work(detail::leaf_size(depth, map.resolution()), log_odds >= 0.0F, target_res, fuse_free);
+  });
+  return work;
+}
+
 /// Fewer cubes than this are placed on the calling thread (a thread start costs more).
 constexpr std::size_t kParallelCubes = 2048;
 
@@ -618,6 +643,12 @@ void GlobalFusion::stage(std::shared_ptr<const HeldMap> map) {
   staged_.reset();
   if (!map || walkable_body(*map, resolution_)) return;  // its body is read in one pass anyway
   auto staged = std::make_unique<StagedLeaves>();
+  if (map->full_body()) {  // its leaves are read off the body when placed; its work now
+    staged->work = tree_map_work(*map, resolution_, config_.fuse_free);
+    staged->map = std::move(map);
+    staged_ = std::move(staged);
+    return;
+  }
   const std::shared_ptr<const octomap::OcTree> tree = map->tree();
   // One walk gives the leaves and their work (estimate_work's sum). Room for every node: only
   // the pages the leaves fill are touched, and none is copied as the vector would grow.
@@ -756,6 +787,53 @@ GlobalFusion::Difference GlobalFusion::add_moving_difference(Entry& moving, std:
   return Difference::kPlaced;
 }
 
+bool GlobalFusion::place_on_own_grid(const HeldMap& map, const Eigen::Matrix4d& T, int sign, GlobalFuseResult& stats,
+                                     Eigen::AlignedBox3d* extent, const StagedLeaves* staged) {
+  if (map.resolution() != resolution_ || T != Eigen::Matrix4d::Identity()) return false;
+  // Each leaf is an aligned block of the sums' grid: added as it is, nothing resampled (the same
+  // sums as map_cubes() gives, and so the same bytes).
+  const double res = resolution_;
+  std::size_t voxels = 0, blocks = 0;
+  const auto place = [&](float log_odds, unsigned depth, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
+    const std::int64_t e = evidence(log_odds, config_);
+    if (e == 0) return;
+    ++stats.cubes;
+    if (extent) {
+      grow(*extent,
+           Eigen::Vector3d(detail::leaf_coord(x, depth, res), detail::leaf_coord(y, depth, res),
+                           detail::leaf_coord(z, depth, res)),
+           detail::leaf_size(depth, res));
+    }
+    const unsigned level = kTreeDepth - depth;
+    sums_->add(octomap::OcTreeKey(static_cast<octomap::key_type>(x), static_cast<octomap::key_type>(y),
+                                  static_cast<octomap::key_type>(z)),
+               level, sign * e);
+    ++(level == 0 ? voxels : blocks);
+  };
+  if (const auto& body = map.binary_body()) {
+    const float values[3] = {0.0F, map.free_log_odds(), map.occupied_log_odds()};  // by child code
+    detail::for_each_binary_leaf(*body, [&](unsigned code, unsigned depth, std::uint32_t x, std::uint32_t y,
+                                            std::uint32_t z) { place(values[code], depth, x, y, z); });
+  } else if (const auto& full = map.full_body()) {
+    detail::for_each_full_leaf(*full, place);
+  } else {
+    const auto leaf = [&](const octomap::OcTreeKey& key, unsigned depth, float log_odds) {
+      const std::uint32_t corner = ~((1U << (kTreeDepth - depth)) - 1U);  // the iterator's key is inside
+      place(log_odds, depth, key[0] & corner, key[1] & corner, key[2] & corner);
+    };
+    if (staged) {
+      for (const StagedLeaf& l : staged->leaves) leaf(l.key, l.depth, l.log_odds);
+    } else {
+      const std::shared_ptr<const octomap::OcTree> tree = map.tree();
+      for (auto it = tree->begin_leafs(), end = tree->end_leafs(); it != end; ++it)
+        leaf(it.getKey(), it.getDepth(), it->getLogOdds());
+    }
+  }
+  stats.voxel_updates += voxels;
+  stats.block_updates += blocks;
+  return true;
+}
+
 void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stats, bool body_checked,
                             Eigen::AlignedBox3d* extent, const StagedLeaves* staged) {
   if (entry.T_to) {  // halfway through a move in steps: each part at its pose
@@ -764,6 +842,7 @@ void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stat
     return;
   }
   const Eigen::Matrix4d& T = entry.T_global_robot;
+  if (place_on_own_grid(*entry.map, T, sign, stats, extent, staged)) return;
   FuseResult counts;
   double work = 0.0;
   // The map's cubes go to map_cubes() in runs of kRun (memory stays bounded; each run is spread
@@ -800,7 +879,9 @@ void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stat
     auto [vote, inserted] = fine.try_emplace(key, leaf.log_odds);
     if (!inserted) vote->second = std::max(vote->second, leaf.log_odds);
   };
-  if (staged) {
+  if (entry.map->full_body()) {
+    for_each_full_body_leaf(*entry.map, place);
+  } else if (staged) {
     const std::shared_ptr<const octomap::OcTree> tree = staged->map->tree();
     for (const StagedLeaf& leaf : staged->leaves) place(tree_leaf(*tree, leaf));
   } else {
@@ -930,7 +1011,7 @@ GlobalFuseResult GlobalFusion::set(const std::string& robot, std::shared_ptr<con
     const auto t0 = std::chrono::steady_clock::now();
     double work = 0.0;
     const bool body = whole_body(*next.map, false, resolution_, config_, nullptr, work);
-    if (!body) work = staged ? staged->work : detail::estimate_work(*next.map->tree(), resolution_, config_.fuse_free);
+    if (!body) work = staged ? staged->work : tree_map_work(*next.map, resolution_, config_.fuse_free);
     r.work = work;
     r.diff_s += seconds_since(t0);
     r.ok = work <= config_.max_work;

@@ -22,7 +22,13 @@ namespace detail {
 std::shared_ptr<const HeldMap> held_checked_body(double resolution,
                                                  std::shared_ptr<const std::vector<std::uint8_t>> body,
                                                  std::size_t num_nodes) {
-  return std::shared_ptr<const HeldMap>(new HeldMap(resolution, std::move(body), num_nodes));
+  return std::shared_ptr<const HeldMap>(new HeldMap(resolution, std::move(body), num_nodes, true));
+}
+
+std::shared_ptr<const HeldMap> held_checked_full_body(double resolution,
+                                                      std::shared_ptr<const std::vector<std::uint8_t>> body,
+                                                      std::size_t num_nodes) {
+  return std::shared_ptr<const HeldMap>(new HeldMap(resolution, std::move(body), num_nodes, false));
 }
 
 }  // namespace detail
@@ -38,17 +44,20 @@ HeldMap::HeldMap(std::shared_ptr<const octomap::OcTree> tree, std::shared_ptr<co
   built_flag_.store(true, std::memory_order_release);  // tree() never builds
 }
 
-HeldMap::HeldMap(double resolution, std::shared_ptr<const std::vector<std::uint8_t>> body, std::size_t num_nodes)
+HeldMap::HeldMap(double resolution, std::shared_ptr<const std::vector<std::uint8_t>> body, std::size_t num_nodes,
+                 bool binary)
     : resolution_(resolution),
       num_nodes_(num_nodes),
-      body_(std::move(body)),
+      body_(binary ? std::move(body) : nullptr),
+      full_body_(binary ? nullptr : std::move(body)),
       free_log_odds_(default_tree().getClampingThresMinLog()),
       occupied_log_odds_(default_tree().getClampingThresMaxLog()) {}
 
 std::shared_ptr<const octomap::OcTree> HeldMap::tree() const {
   std::lock_guard<std::mutex> lock(tree_mutex_);
   if (!tree_) {
-    tree_ = detail::build_checked_binary_tree(resolution_, *body_);
+    tree_ = body_ ? detail::build_checked_binary_tree(resolution_, *body_)
+                  : detail::build_checked_full_tree(resolution_, *full_body_);
     built_flag_.store(true, std::memory_order_release);
   }
   return tree_;
@@ -57,7 +66,7 @@ std::shared_ptr<const octomap::OcTree> HeldMap::tree() const {
 bool HeldMap::release_tree() const {
   std::shared_ptr<const octomap::OcTree> old;  // freed after the lock is let go of
   std::lock_guard<std::mutex> lock(tree_mutex_);
-  if (!body_ || !tree_) return false;
+  if (!has_body() || !tree_) return false;
   old = std::move(tree_);
   built_flag_.store(false, std::memory_order_release);
   return true;
@@ -70,32 +79,31 @@ std::shared_ptr<const LeafSet> HeldMap::occupied_leaves() const {
 }
 
 bool HeldMap::for_each_leaf(const std::function<void(const BodyLeaf&)>& leaf) const {
-  if (!body_) return false;
-  // OcTree::keyToCoord(key, depth) and getNodeSize(depth), in the same arithmetic (so the same
-  // floats): (floor((key - centre) / 2^(16 - depth)) + 0.5) * size, or (key - centre + 0.5) * res
-  // at depth 16; a leaf's lowest-corner key makes the floor exact.
-  constexpr int kCentre = 1 << (detail::kTreeDepth - 1);
+  if (!has_body()) return false;
   BodyLeaf b;
-  detail::for_each_binary_leaf(*body_, [&](unsigned code, unsigned depth, std::uint32_t x, std::uint32_t y,
-                                           std::uint32_t z) {
-    b.occupied = code == 2;
+  const auto place = [&](unsigned depth, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
     b.depth = depth;
-    const std::uint32_t key[3] = {x, y, z};
-    if (depth == detail::kTreeDepth) {
-      b.size = resolution_;
-      for (int a = 0; a < 3; ++a) {
-        b.centre[a] = static_cast<float>((static_cast<double>(static_cast<int>(key[a]) - kCentre) + 0.5) * resolution_);
-      }
-    } else {
-      const double cells = static_cast<double>(1U << (detail::kTreeDepth - depth));
-      b.size = resolution_ * cells;
-      for (int a = 0; a < 3; ++a) {
-        b.centre[a] = static_cast<float>(
-            (std::floor((static_cast<double>(key[a]) - static_cast<double>(kCentre)) / cells) + 0.5) * b.size);
-      }
-    }
+    b.size = detail::leaf_size(depth, resolution_);
+    b.centre = Eigen::Vector3f(static_cast<float>(detail::leaf_coord(x, depth, resolution_)),
+                               static_cast<float>(detail::leaf_coord(y, depth, resolution_)),
+                               static_cast<float>(detail::leaf_coord(z, depth, resolution_)));
     leaf(b);
-  });
+  };
+  if (body_) {
+    detail::for_each_binary_leaf(*body_, [&](unsigned code, unsigned depth, std::uint32_t x, std::uint32_t y,
+                                             std::uint32_t z) {
+      b.occupied = code == 2;
+      b.log_odds = b.occupied ? occupied_log_odds_ : free_log_odds_;
+      place(depth, x, y, z);
+    });
+  } else {
+    detail::for_each_full_leaf(*full_body_, [&](float log_odds, unsigned depth, std::uint32_t x, std::uint32_t y,
+                                                std::uint32_t z) {
+      b.occupied = log_odds >= 0.0F;  // OcTree::isNodeOccupied at the default threshold (0.5)
+      b.log_odds = log_odds;
+      place(depth, x, y, z);
+    });
+  }
   return true;
 }
 

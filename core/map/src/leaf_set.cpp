@@ -41,15 +41,22 @@ void LeafSet::finish() {
 }
 
 LeafSet LeafSet::of(const HeldMap& map, LeafState state) {
-  const auto& body = map.binary_body();
-  if (!body) return of(*map.tree(), state);
+  if (!map.has_body()) return of(*map.tree(), state);
   LeafSet out;
   out.resolution_ = map.resolution();
-  const unsigned kept = state == LeafState::kOccupied ? 2U : 1U;  // binary child code
-  detail::for_each_binary_leaf(*body, [&](unsigned code, unsigned depth, std::uint32_t x, std::uint32_t y,
-                                          std::uint32_t z) {
-    if (code == kept) out.add(depth, x, y, z);
-  });
+  if (const auto& body = map.binary_body()) {
+    const unsigned kept = state == LeafState::kOccupied ? 2U : 1U;  // binary child code
+    detail::for_each_binary_leaf(*body, [&](unsigned code, unsigned depth, std::uint32_t x, std::uint32_t y,
+                                            std::uint32_t z) {
+      if (code == kept) out.add(depth, x, y, z);
+    });
+  } else {
+    const bool occupied = state == LeafState::kOccupied;
+    detail::for_each_full_leaf(*map.full_body(), [&](float log_odds, unsigned depth, std::uint32_t x,
+                                                     std::uint32_t y, std::uint32_t z) {
+      if ((log_odds >= 0.0F) == occupied) out.add(depth, x, y, z);  // OcTree::isNodeOccupied
+    });
+  }
   out.finish();
   return out;
 }

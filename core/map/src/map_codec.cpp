@@ -109,7 +109,7 @@ std::optional<DecodeResult> check_id_and_resolution(std::string_view id, double 
   return std::nullopt;
 }
 
-/// With `build_tree` false a binary body is only checked: the result holds the body, no tree.
+/// With `build_tree` false a body is only checked: the result holds the body, no tree.
 DecodeResult decode_body(double res, bool binary, const std::uint8_t* body, std::size_t size,
                          std::optional<std::uint64_t> claimed_nodes, const DecodeLimits& limits,
                          bool build_tree = true) {
@@ -138,8 +138,9 @@ DecodeResult decode_body(double res, bool binary, const std::uint8_t* body, std:
     result.empty = true;  // a root without children carries no map information
     return result;
   }
-  if (binary && !build_tree) {
-    result.binary_body = std::make_shared<const std::vector<std::uint8_t>>(body, body + size);
+  if (!build_tree) {  // checked only: the map is held as its body (HeldMap builds the tree on demand)
+    (binary ? result.binary_body : result.full_body) =
+        std::make_shared<const std::vector<std::uint8_t>>(body, body + size);
     result.num_nodes = scan.num_nodes;
     return result;
   }
@@ -185,7 +186,7 @@ DecodeResult decode_file_bytes(const std::uint8_t* data, std::size_t size, bool 
                      header.size, limits, build_tree);
 }
 
-/// decode_map(); with `build_tree` false a binary body is only checked. `res_out`: the header's
+/// decode_map(); with `build_tree` false a body is only checked. `res_out`: the header's
 /// resolution, once parsed.
 DecodeResult decode_payload(const std::uint8_t* data, std::size_t size, Encoding encoding, const DecodeLimits& limits,
                             bool build_tree, double* res_out) {
@@ -217,9 +218,14 @@ CheckedMap to_checked(DecodeResult r, double res) {
   out.reason = std::move(r.reason);
   out.empty = r.empty;
   if (!r.ok() || r.empty) return out;
-  out.map = r.tree ? std::make_shared<const HeldMap>(std::shared_ptr<const octomap::OcTree>(std::move(r.tree)),
-                                                     std::move(r.binary_body))
-                   : detail::held_checked_body(res, std::move(r.binary_body), r.num_nodes);
+  if (r.tree) {
+    out.map = std::make_shared<const HeldMap>(std::shared_ptr<const octomap::OcTree>(std::move(r.tree)),
+                                              std::move(r.binary_body));
+  } else if (r.full_body) {
+    out.map = detail::held_checked_full_body(res, std::move(r.full_body), r.num_nodes);
+  } else {
+    out.map = detail::held_checked_body(res, std::move(r.binary_body), r.num_nodes);
+  }
   return out;
 }
 
@@ -229,6 +235,10 @@ namespace detail {
 
 std::unique_ptr<octomap::OcTree> build_checked_binary_tree(double res, const std::vector<std::uint8_t>& body) {
   return std::make_unique<BodyTree>(res, true, body.data(), body.size());
+}
+
+std::unique_ptr<octomap::OcTree> build_checked_full_tree(double res, const std::vector<std::uint8_t>& body) {
+  return std::make_unique<BodyTree>(res, false, body.data(), body.size());
 }
 
 }  // namespace detail

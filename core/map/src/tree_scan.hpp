@@ -1,8 +1,10 @@
 #pragma once
 /// Non-recursive structural checks of OctoMap tree bodies (internal to mapmerge_core).
 
+#include <cmath>
 #include <cstddef>
 #include <cstdint>
+#include <cstring>
 #include <string>
 #include <vector>
 
@@ -55,6 +57,53 @@ void for_each_binary_leaf(const std::vector<std::uint8_t>& body, Leaf&& leaf) {
   };
   if (body.size() < 2) return;
   Walk{body, leaf}.visit(0, 0, 0, 0);
+}
+
+/// Edge [m] of a leaf at `depth` (1..16) of a tree of resolution `res`: OcTree::getNodeSize.
+inline double leaf_size(unsigned depth, double res) {
+  return res * static_cast<double>(1U << (kTreeDepth - depth));
+}
+
+/// Centre coordinate [m] along one axis of the leaf at `depth` whose lowest-corner key on that
+/// axis is `corner` (as the walks above give it): OcTree::keyToCoord(key, depth) in the same
+/// arithmetic, so the same doubles, (floor((key - centre) / 2^(16 - depth)) + 0.5) * size, or
+/// (key - centre + 0.5) * res at depth 16; the corner key makes the floor exact.
+inline double leaf_coord(std::uint32_t corner, unsigned depth, double res) {
+  constexpr double kCentre = static_cast<double>(1U << (kTreeDepth - 1));
+  if (depth == kTreeDepth) return (static_cast<double>(corner) - kCentre + 0.5) * res;
+  const double cells = static_cast<double>(1U << (kTreeDepth - depth));
+  return (std::floor((static_cast<double>(corner) - kCentre) / cells) + 0.5) * (res * cells);
+}
+
+/// Calls `leaf(log_odds, depth, x, y, z)` for every leaf (a node without children, below the
+/// root) of a validated full body (OcTree::writeData: per node a float log-odds and a byte whose
+/// bit i says child i follows), in depth-first child order, with (x, y, z) as
+/// for_each_binary_leaf() gives them. The body must have passed scan_full_body.
+template <class Leaf>
+void for_each_full_leaf(const std::vector<std::uint8_t>& body, Leaf&& leaf) {
+  struct Walk {
+    const std::uint8_t* data;
+    Leaf& leaf;
+    std::size_t pos = 0;
+    void visit(unsigned depth, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
+      float value = 0.0F;
+      std::memcpy(&value, data + pos, sizeof(value));
+      const unsigned children = data[pos + sizeof(value)];
+      pos += sizeof(value) + 1;
+      if (children == 0) {
+        if (depth > 0) leaf(value, depth, x, y, z);
+        return;
+      }
+      const std::uint32_t half = (1U << kTreeDepth) >> (depth + 1);
+      for (unsigned i = 0; i < 8; ++i) {
+        if ((children & (1U << i)) == 0) continue;
+        visit(depth + 1, x + ((i & 1U) != 0 ? half : 0), y + ((i & 2U) != 0 ? half : 0),
+              z + ((i & 4U) != 0 ? half : 0));
+      }
+    }
+  };
+  if (body.size() < sizeof(float) + 1) return;
+  Walk{body.data(), leaf}.visit(0, 0, 0, 0);
 }
 
 /// What a scan found: the node count of a well-formed body, or why it is not one.

@@ -15,8 +15,8 @@ namespace mapmerge {
 /// an empty tree.
 Eigen::AlignedBox3d leaf_bounds(const octomap::OcTree& tree);
 
-/// The same box for a held map, read off its binary body when its tree is not built (one pass
-/// over the bytes; the tree is not built).
+/// The same box for a held map, read off its body (binary or full) when its tree is not built
+/// (one pass over the bytes; the tree is not built).
 Eigen::AlignedBox3d leaf_bounds(const HeldMap& map);
 
 /// The largest distance [m] between where `a` and where `b` (rigid 4x4 transforms) put a point

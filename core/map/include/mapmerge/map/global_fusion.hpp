@@ -114,9 +114,10 @@ class GlobalFusion {
                        std::shared_ptr<const std::vector<std::uint8_t>> binary_body = nullptr);
   /// Reads `map`'s leaves and their fusion work ahead of a set() of that map, so that set() only
   /// places them: e.g. while the map's pose is still being found. Only a map without a checked
-  /// binary body gains (its octree is walked here, not in set(); a body is read in one pass over
-  /// bytes anyway, so for it this does nothing). Keeps one map's leaves (12 B a leaf) until the
-  /// set() of that map, or the next stage().
+  /// binary body gains: a map with only a tree has its octree walked here, not in set() (one
+  /// map's leaves are kept, 12 B a leaf, until the set() of that map or the next stage()); a
+  /// full (`.ot`) body has its work summed here and its leaves read off it by set(). A binary
+  /// body is read in one pass over bytes anyway: for it this does nothing.
   void stage(std::shared_ptr<const HeldMap> map);
   /// Threads set() and encode() may work on at once (default: one per core, at most 4; 1: the
   /// calling thread only). The sums and the bytes do not depend on it.
@@ -214,9 +215,13 @@ class GlobalFusion {
   Difference add_moving_difference(Entry& moving, std::shared_ptr<const HeldMap> map, GlobalFuseResult& stats);
   /// fuses_by_difference() for the robot's entry.
   bool same_grid(const Entry& fused, const HeldMap& map) const;
+  /// add_full() of a map whose frame is the grid's (identity pose, the grid's resolution): its
+  /// leaves added as they are. False (nothing done) for any other map.
+  bool place_on_own_grid(const HeldMap& map, const Eigen::Matrix4d& T, int sign, GlobalFuseResult& stats,
+                         Eigen::AlignedBox3d* extent, const StagedLeaves* staged);
   /// `body_checked`: the entry's binary body was just scanned whole (as in set()): not again.
   /// `extent`: grown by every cube placed (null: not kept). `staged`: the entry map's leaves,
-  /// read by stage() (null: its tree is walked).
+  /// read by stage() (null: its full body or tree is walked).
   void add_full(const Entry& entry, int sign, GlobalFuseResult& stats, bool body_checked = false,
                 Eigen::AlignedBox3d* extent = nullptr, const StagedLeaves* staged = nullptr);
   /// Places what changed from `before` to `after` at `after`'s pose, or at `before`'s when

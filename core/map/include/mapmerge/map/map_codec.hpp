@@ -85,6 +85,9 @@ struct DecodeResult {
   /// octomap-bt, octomap-bt+zstd and binary ROS 2 bodies of non-empty maps; null for full (`.ot`)
   /// bodies. GlobalFusion diffs two such bodies instead of walking two trees.
   std::shared_ptr<const std::vector<std::uint8_t>> binary_body;
+  /// The full body (OcTree::writeData's bytes), validated: set only by check_map() and
+  /// check_tree_body() of a full body, which build no tree.
+  std::shared_ptr<const std::vector<std::uint8_t>> full_body;
 
   bool ok() const { return error == DecodeError::kNone; }
 };
@@ -132,11 +135,11 @@ struct CheckedMap {
 };
 
 /// decode_map()'s checks, accepting and rejecting exactly the same payloads, without building
-/// the tree of a binary body (octomap-bt, octomap-bt+zstd): the HeldMap builds it on first use.
-/// A full (`.ot`) body is decoded at once (it has no binary body to keep). O(bytes).
+/// the map's tree: the HeldMap keeps the binary (octomap-bt, octomap-bt+zstd) or full (`.ot`)
+/// body and builds the tree on first use. O(bytes).
 CheckedMap check_map(const std::uint8_t* data, std::size_t size, Encoding encoding, const DecodeLimits& limits);
 CheckedMap check_map(const std::vector<std::uint8_t>& bytes, std::string_view encoding, const DecodeLimits& limits);
-/// decode_tree_body()'s checks, the same way (binary ROS 2 bodies are kept undecoded).
+/// decode_tree_body()'s checks, the same way (ROS 2 bodies, binary or full, are kept undecoded).
 CheckedMap check_tree_body(std::string_view id, double resolution, bool binary, const std::vector<std::uint8_t>& data,
                            const DecodeLimits& limits);
 
