@@ -10,6 +10,7 @@
 #include <vector>
 
 #include <fcntl.h>
+#include <sys/resource.h>
 #include <unistd.h>
 
 #include <nlohmann/json.hpp>
@@ -106,9 +107,9 @@ int run_merge(const MergeOptions& o) {
   // smaller map's preparation starts as soon as it is read. Fused as the server fuses
   // (GlobalFusion, the sum of both maps' log-odds clamped once, on the target's grid), off the
   // maps' bytes: no octree is built to write a `.bt` file. The target needs no transform: it is
-  // placed on a third thread from the moment it is read, and the source's leaves are read for
-  // their placement after it (GlobalFusion::stage: a `.ot` map's octree walk). The alignment
-  // leaves part of the two cores idle (~0.6 of one on the paper's pair).
+  // placed on a third thread of the lowest priority from the moment it is read (the alignment
+  // leaves part of the two cores idle, ~0.6 of one on the paper's pair), and the source is staged
+  // after it (GlobalFusion::stage).
   std::shared_ptr<const HeldMap> target, source;
   std::promise<std::shared_ptr<const HeldMap>> source_read;  // for the fusion's thread
   std::shared_future<std::shared_ptr<const HeldMap>> source_ready = source_read.get_future().share();
@@ -135,6 +136,11 @@ int run_merge(const MergeOptions& o) {
       fusion_threads = fused->threads();
       fused->set_threads(1);
       target_placed = std::async(std::launch::async, [&] {
+        // Background work: its result is needed only once the alignment is done, so it takes the
+        // cores only when the two preparations and the search leave one idle (Linux: a thread's
+        // own nice value). On the paper's pair the target's preparation, no longer sharing its
+        // core, ends ~30 ms sooner (merge -o median 0.512 -> 0.480 s, 12 interleaved runs).
+        ::setpriority(PRIO_PROCESS, static_cast<id_t>(::gettid()), 19);
         GlobalFuseResult placed = fused->set("target", target, Eigen::Matrix4d::Identity());
         fused->stage(source_ready.get());  // (a source that could not be read ends here)
         return placed;
