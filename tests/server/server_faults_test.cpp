@@ -8,6 +8,7 @@
 // a robot the server published as aligned, and every global map version it published.
 
 #include <filesystem>
+#include <sstream>
 #include <random>
 #include <regex>
 #include <thread>
@@ -149,6 +150,25 @@ class ServerFaults : public ServerFleet {
     return started != std::string::npos && (finished == std::string::npos || started > finished);
   }
   std::string run_log(int run) const { return read_file(dir + "/server" + std::to_string(run) + ".log"); }
+  /// What the operator sees of each robot against the last sequence it published: the map the
+  /// server holds, the map its global map fused, the pose's status; and the global map's version.
+  static std::string converged_view(const FleetListener& op, const std::vector<std::uint64_t>& last) {
+    const auto s = op.status();
+    const auto g = op.global();
+    const auto poses = op.poses();
+    std::ostringstream out;
+    out << "global map version " << g.version << " (status: " << s.global_version << ")\n";
+    for (std::size_t i = 0; i < last.size() && i < fleet().robots.size(); ++i) {
+      const std::string& id = fleet().robots[i].id;
+      const auto held = s.sequence.find(id);
+      const auto fused = g.contributor_sequence.find(id);
+      const auto pose = poses.find(id);
+      out << id << ": published " << last[i] << ", held " << (held == s.sequence.end() ? "-" : std::to_string(held->second))
+          << ", fused " << (fused == g.contributor_sequence.end() ? "-" : std::to_string(fused->second))
+          << ", pose status " << (pose == poses.end() ? "-" : std::to_string(pose->second.status)) << "\n";
+    }
+    return out.str();
+  }
 
   /// Waits for run `run` to log what it restored; expects everything acknowledged before.
   void expect_nothing_lost(int run, const Acknowledged& acked) {
@@ -229,7 +249,7 @@ TEST_F(ServerFaults, TwentyKillsDuringMergesAndWritesLoseNothingAcknowledged) {
       }
     }
     return aligned(op, {"r1", "r2", "r3"});
-  }, kMergeTimeout)) << run_log(run);
+  }, kMergeTimeout)) << converged_view(op, last) << run_log(run);
   for (std::size_t i = 1; i < fleet().robots.size(); ++i) {
     const auto pose = op.poses().at(fleet().robots[i].id);
     EXPECT_LT(rotation_error_deg(fleet().truth(i), pose.T_global_robot), kMaxRotationDeg) << fleet().robots[i].id;
