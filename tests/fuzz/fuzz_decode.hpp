@@ -13,6 +13,9 @@
 #include <limits>
 #include <vector>
 
+#include "mapmerge/map/bounds.hpp"
+#include "mapmerge/map/held_map.hpp"
+#include "mapmerge/map/leaf_set.hpp"
 #include "mapmerge/map/map_codec.hpp"
 
 namespace mapmerge::fuzz {
@@ -38,12 +41,22 @@ inline int check_round_trip(const DecodeResult& r, const DecodeLimits& limits) {
   return 1;
 }
 
-/// check_map()/check_tree_body() must accept and reject exactly what decoding does, and the tree
-/// a checked map builds later must be the decoded tree; aborts otherwise. Returns `r`'s verdict.
+/// check_map()/check_tree_body() must accept and reject exactly what decoding does, the leaves
+/// read off a checked map's body must be the decoded tree's (bounds, occupied and free leaf
+/// counts), and the tree it builds later must be the decoded tree; aborts otherwise. Returns
+/// `r`'s verdict.
 inline int check_agrees(const DecodeResult& r, const CheckedMap& c, const DecodeLimits& limits) {
   if (c.error != r.error || c.empty != r.empty || (c.ok() && !c.empty) != (c.map != nullptr)) std::abort();
   if (c.map) {
     if (c.map->num_nodes() != r.num_nodes || c.map->resolution() != r.tree->getResolution()) std::abort();
+    if (!c.map->has_tree()) {  // what is read off the body (binary or full) is what the tree holds
+      const Eigen::AlignedBox3d box = leaf_bounds(*c.map), tree_box = leaf_bounds(*r.tree);
+      if (box.isEmpty() != tree_box.isEmpty() || (!box.isEmpty() && (box.min() != tree_box.min() || box.max() != tree_box.max())))
+        std::abort();
+      for (const LeafState state : {LeafState::kOccupied, LeafState::kFree}) {
+        if (LeafSet::of(*c.map, state).size() != LeafSet::of(*r.tree, state).size()) std::abort();
+      }
+    }
     if (encode_map(*c.map->tree(), Encoding::kOctomapBt) != encode_map(*r.tree, Encoding::kOctomapBt)) std::abort();
   }
   return check_round_trip(r, limits);
