@@ -7,6 +7,7 @@
 // reported holding on the status topic or listed among a published global map's contributors,
 // a robot the server published as aligned, and every global map version it published.
 
+#include <condition_variable>
 #include <filesystem>
 #include <sstream>
 #include <random>
@@ -84,11 +85,14 @@ class PublishingRobots {
     running_ = false;
     if (thread_.joinable()) thread_.join();
   }
-  /// No new maps from here: each robot keeps republishing its last one.
-  void freeze() { frozen_ = true; }
-  /// The last sequence each robot published (session "s1").
-  std::vector<std::uint64_t> last() const {
-    std::lock_guard<std::mutex> lock(mutex_);
+  /// No new maps from here: each robot keeps republishing its last one. Returns the sequence each
+  /// robot republishes from now on (session "s1"), once the round under way has gone out: a
+  /// publish still under way (under ASan one can take seconds) must not leave an older one here.
+  std::vector<std::uint64_t> freeze() {
+    std::unique_lock<std::mutex> lock(mutex_);
+    frozen_ = true;
+    const std::uint64_t now = rounds_;
+    round_done_.wait(lock, [&] { return rounds_ > now; });
     return last_;
   }
 
@@ -100,7 +104,12 @@ class PublishingRobots {
         std::lock_guard<std::mutex> lock(mutex_);
         last_[i] = seq;
       }
-      if (!frozen_) ++seq;
+      {
+        std::lock_guard<std::mutex> lock(mutex_);  // a round ends with the same sequence for all
+        ++rounds_;
+        if (!frozen_) ++seq;
+      }
+      round_done_.notify_all();
       std::this_thread::sleep_for(period_);
     }
   }
@@ -109,8 +118,10 @@ class PublishingRobots {
   std::vector<std::unique_ptr<RobotPublisher>> pubs_;
   mutable std::mutex mutex_;
   std::vector<std::uint64_t> last_;
+  std::uint64_t rounds_ = 0;  ///< rounds gone out (guarded by mutex_)
+  std::condition_variable round_done_;
   std::atomic<bool> running_{true};
-  std::atomic<bool> frozen_{false};
+  bool frozen_ = false;  ///< guarded by mutex_
   std::thread thread_;
 };
 
@@ -229,9 +240,7 @@ TEST_F(ServerFaults, TwentyKillsDuringMergesAndWritesLoseNothingAcknowledged) {
   EXPECT_GT(kills_during_write, 0) << "no kill hit a write to the state store";
 
   // The robots never stopped: without anyone's help the fleet converges on their last maps.
-  robots.freeze();
-  std::this_thread::sleep_for(2 * 300ms);  // a round of the last maps has gone out
-  const auto last = robots.last();
+  const auto last = robots.freeze();  // returns once a round of the last maps has gone out
   // The server holds each robot's last map and the global map fuses its bytes (a republished
   // map with the bytes the server has already is only touched, so the global map may name an
   // earlier sequence of the same map).
