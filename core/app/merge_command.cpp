@@ -139,7 +139,8 @@ int run_merge(const MergeOptions& o) {
         // Background work: its result is needed only once the alignment is done, so it takes the
         // cores only when the two preparations and the search leave one idle (Linux: a thread's
         // own nice value). On the paper's pair the target's preparation, no longer sharing its
-        // core, ends ~30 ms sooner (merge -o median 0.512 -> 0.480 s, 12 interleaved runs).
+        // core, ends ~30 ms sooner (merge -o median 0.485 -> 0.457 s, 12 interleaved runs;
+        // bench/results/README.md, session 24).
         ::setpriority(PRIO_PROCESS, static_cast<id_t>(::gettid()), 19);
         GlobalFuseResult placed = fused->set("target", target, Eigen::Matrix4d::Identity());
         fused->stage(source_ready.get());  // (a source that could not be read ends here)

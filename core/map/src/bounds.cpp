@@ -4,7 +4,7 @@
 #include <array>
 #include <cstdint>
 
-#include "tree_scan.hpp"
+#include "body_leaves.hpp"
 
 namespace mapmerge {
 namespace {
@@ -81,13 +81,9 @@ Eigen::AlignedBox3d leaf_bounds(const octomap::OcTree& tree) {
 Eigen::AlignedBox3d leaf_bounds(const HeldMap& map) {
   if (map.has_tree() || !map.has_body()) return leaf_bounds(*map.tree());
   BoundsWalk walk;
-  if (const auto& body = map.binary_body()) {
-    detail::for_each_binary_leaf(*body, [&](unsigned, unsigned depth, std::uint32_t x, std::uint32_t y,
-                                            std::uint32_t z) { walk.leaf({x, y, z}, (1U << kTreeDepth) >> depth); });
-  } else {
-    detail::for_each_full_leaf(*map.full_body(), [&](float, unsigned depth, std::uint32_t x, std::uint32_t y,
-                                                     std::uint32_t z) { walk.leaf({x, y, z}, (1U << kTreeDepth) >> depth); });
-  }
+  detail::for_each_body_leaf(map, [&](float, bool, unsigned depth, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
+    walk.leaf({x, y, z}, (1U << kTreeDepth) >> depth);
+  });
   return walk.box(map.resolution());
 }
 

@@ -18,6 +18,7 @@
 #include "morton.hpp"
 #include "parallel.hpp"
 #include "sum_tree.hpp"
+#include "body_leaves.hpp"
 #include "tree_scan.hpp"
 
 namespace mapmerge {
@@ -490,27 +491,27 @@ void for_each_tree_leaf(const octomap::OcTree& tree, Leaf&& leaf) {
   }
 }
 
-/// Calls `leaf` with every leaf of a map's full (`.ot`) body, in the order of the leaf iterator
-/// of its tree and with the same numbers (its tree is not built).
+/// Calls `leaf` with every leaf of a map's body, in the order of the leaf iterator of its tree
+/// and with the same numbers (its tree is not built). False when the map holds no body.
 template <class Leaf>
-void for_each_full_body_leaf(const HeldMap& map, Leaf&& leaf) {
+bool for_each_body_tree_leaf(const HeldMap& map, Leaf&& leaf) {
   const double res = map.resolution();
-  detail::for_each_full_leaf(*map.full_body(), [&](float log_odds, unsigned depth, std::uint32_t x, std::uint32_t y,
-                                                   std::uint32_t z) {
+  return detail::for_each_body_leaf(map, [&](float log_odds, bool, unsigned depth, std::uint32_t x, std::uint32_t y,
+                                             std::uint32_t z) {
     leaf(TreeLeaf{Eigen::Vector3d(detail::leaf_coord(x, depth, res), detail::leaf_coord(y, depth, res),
                                   detail::leaf_coord(z, depth, res)),
                   detail::leaf_size(depth, res), log_odds});
   });
 }
 
-/// estimate_work() of a map without a binary body: off its full body when it has one (log-odds
-/// >= 0 occupied: the tree's threshold), else off its tree.
+/// estimate_work() of a map without a binary body: off its full body when it has one, else off
+/// its tree.
 double tree_map_work(const HeldMap& map, double target_res, bool fuse_free) {
   if (!map.full_body()) return detail::estimate_work(*map.tree(), target_res, fuse_free);
   double work = 0.0;
-  detail::for_each_full_leaf(*map.full_body(), [&](float log_odds, unsigned depth, std::uint32_t, std::uint32_t,
-                                                   std::uint32_t) {
-    work += detail::leaf_work(detail::leaf_size(depth, map.resolution()), log_odds >= 0.0F, target_res, fuse_free);
+  detail::for_each_body_leaf(map, [&](float, bool occupied, unsigned depth, std::uint32_t, std::uint32_t,
+                                      std::uint32_t) {
+    work += detail::leaf_work(detail::leaf_size(depth, map.resolution()), occupied, target_res, fuse_free);
   });
   return work;
 }
@@ -794,7 +795,7 @@ bool GlobalFusion::place_on_own_grid(const HeldMap& map, const Eigen::Matrix4d& 
   // sums as map_cubes() gives, and so the same bytes).
   const double res = resolution_;
   std::size_t voxels = 0, blocks = 0;
-  const auto place = [&](float log_odds, unsigned depth, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
+  const auto place = [&](float log_odds, bool, unsigned depth, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
     const std::int64_t e = evidence(log_odds, config_);
     if (e == 0) return;
     ++stats.cubes;
@@ -810,16 +811,10 @@ bool GlobalFusion::place_on_own_grid(const HeldMap& map, const Eigen::Matrix4d& 
                level, sign * e);
     ++(level == 0 ? voxels : blocks);
   };
-  if (const auto& body = map.binary_body()) {
-    const float values[3] = {0.0F, map.free_log_odds(), map.occupied_log_odds()};  // by child code
-    detail::for_each_binary_leaf(*body, [&](unsigned code, unsigned depth, std::uint32_t x, std::uint32_t y,
-                                            std::uint32_t z) { place(values[code], depth, x, y, z); });
-  } else if (const auto& full = map.full_body()) {
-    detail::for_each_full_leaf(*full, place);
-  } else {
+  if (!detail::for_each_body_leaf(map, place)) {
     const auto leaf = [&](const octomap::OcTreeKey& key, unsigned depth, float log_odds) {
       const std::uint32_t corner = ~((1U << (kTreeDepth - depth)) - 1U);  // the iterator's key is inside
-      place(log_odds, depth, key[0] & corner, key[1] & corner, key[2] & corner);
+      place(log_odds, detail::occupied_log_odds(log_odds), depth, key[0] & corner, key[1] & corner, key[2] & corner);
     };
     if (staged) {
       for (const StagedLeaf& l : staged->leaves) leaf(l.key, l.depth, l.log_odds);
@@ -879,8 +874,8 @@ void GlobalFusion::add_full(const Entry& entry, int sign, GlobalFuseResult& stat
     auto [vote, inserted] = fine.try_emplace(key, leaf.log_odds);
     if (!inserted) vote->second = std::max(vote->second, leaf.log_odds);
   };
-  if (entry.map->full_body()) {
-    for_each_full_body_leaf(*entry.map, place);
+  if (entry.map->full_body()) {  // (a binary body not finer than the grid went through whole_body above)
+    for_each_body_tree_leaf(*entry.map, place);
   } else if (staged) {
     const std::shared_ptr<const octomap::OcTree> tree = staged->map->tree();
     for (const StagedLeaf& leaf : staged->leaves) place(tree_leaf(*tree, leaf));

@@ -4,7 +4,7 @@
 
 #include "codec_detail.hpp"
 #include "mapmerge/map/map_io.hpp"
-#include "tree_scan.hpp"
+#include "body_leaves.hpp"
 
 namespace mapmerge {
 namespace {
@@ -79,32 +79,18 @@ std::shared_ptr<const LeafSet> HeldMap::occupied_leaves() const {
 }
 
 bool HeldMap::for_each_leaf(const std::function<void(const BodyLeaf&)>& leaf) const {
-  if (!has_body()) return false;
   BodyLeaf b;
-  const auto place = [&](unsigned depth, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
+  return detail::for_each_body_leaf(*this, [&](float log_odds, bool occupied, unsigned depth, std::uint32_t x,
+                                               std::uint32_t y, std::uint32_t z) {
+    b.occupied = occupied;
+    b.log_odds = log_odds;
     b.depth = depth;
     b.size = detail::leaf_size(depth, resolution_);
     b.centre = Eigen::Vector3f(static_cast<float>(detail::leaf_coord(x, depth, resolution_)),
                                static_cast<float>(detail::leaf_coord(y, depth, resolution_)),
                                static_cast<float>(detail::leaf_coord(z, depth, resolution_)));
     leaf(b);
-  };
-  if (body_) {
-    detail::for_each_binary_leaf(*body_, [&](unsigned code, unsigned depth, std::uint32_t x, std::uint32_t y,
-                                             std::uint32_t z) {
-      b.occupied = code == 2;
-      b.log_odds = b.occupied ? occupied_log_odds_ : free_log_odds_;
-      place(depth, x, y, z);
-    });
-  } else {
-    detail::for_each_full_leaf(*full_body_, [&](float log_odds, unsigned depth, std::uint32_t x, std::uint32_t y,
-                                                std::uint32_t z) {
-      b.occupied = log_odds >= 0.0F;  // OcTree::isNodeOccupied at the default threshold (0.5)
-      b.log_odds = log_odds;
-      place(depth, x, y, z);
-    });
-  }
-  return true;
+  });
 }
 
 bool HeldMap::has_tree() const { return built_flag_.load(std::memory_order_acquire); }

@@ -9,7 +9,7 @@
 #include "mapmerge/map/held_map.hpp"
 #include "morton.hpp"
 #include "octree_internals.hpp"
-#include "tree_scan.hpp"
+#include "body_leaves.hpp"
 
 namespace mapmerge {
 namespace {
@@ -44,19 +44,11 @@ LeafSet LeafSet::of(const HeldMap& map, LeafState state) {
   if (!map.has_body()) return of(*map.tree(), state);
   LeafSet out;
   out.resolution_ = map.resolution();
-  if (const auto& body = map.binary_body()) {
-    const unsigned kept = state == LeafState::kOccupied ? 2U : 1U;  // binary child code
-    detail::for_each_binary_leaf(*body, [&](unsigned code, unsigned depth, std::uint32_t x, std::uint32_t y,
-                                            std::uint32_t z) {
-      if (code == kept) out.add(depth, x, y, z);
-    });
-  } else {
-    const bool occupied = state == LeafState::kOccupied;
-    detail::for_each_full_leaf(*map.full_body(), [&](float log_odds, unsigned depth, std::uint32_t x,
-                                                     std::uint32_t y, std::uint32_t z) {
-      if ((log_odds >= 0.0F) == occupied) out.add(depth, x, y, z);  // OcTree::isNodeOccupied
-    });
-  }
+  const bool wanted = state == LeafState::kOccupied;
+  detail::for_each_body_leaf(map, [&](float, bool occupied, unsigned depth, std::uint32_t x, std::uint32_t y,
+                                      std::uint32_t z) {
+    if (occupied == wanted) out.add(depth, x, y, z);
+  });
   out.finish();
   return out;
 }
