@@ -116,7 +116,7 @@ struct ValidateConfig {
                                    ///< the other map's known free space contradicts the transform [x res]
   double min_inlier_share = 0.98;  ///< inliers / (inliers + contradictions) to accept [0..1]
   double conflict_weight = 5.0;  ///< ranking score = inliers - conflict_weight * contradictions [ratio]
-  double ambiguity_ratio = 0.85;  ///< reject when a distinct hypothesis scores at least this share of the best [0..1]
+  double ambiguity_ratio = 0.85;  ///< reject when a distinct hypothesis that free space does not contradict scores at least this share of the best that passes [0..1]
   double distinct_rotation_deg = 5.0;  ///< hypotheses differing more than this are distinct [deg]
   double distinct_translation = 10.0;  ///< ... or more than this [x u]
   std::size_t coarse_points = 1500;  ///< points per direction for the quick check of raw hypotheses (twice as many for the final check) [count]
