@@ -19,6 +19,9 @@
 #include "mapmerge_fastdds/mapmergePubSubTypes.h"
 #include "mapmerge_fastdds/ros2_msgsPubSubTypes.h"
 
+#include <fastrtps/attributes/LibrarySettingsAttributes.h>
+#include <fastrtps/xmlparser/XMLProfileManager.h>
+
 namespace mapmerge::wire {
 namespace {
 
@@ -134,6 +137,33 @@ TEST_F(WireRoundTrip, MapUpdateFromCycloneToFastdds) {
   EXPECT_EQ(received.robot_id(), "r2");
   EXPECT_EQ(received.sequence_number(), 3u);
   EXPECT_EQ(received.data(), bytes);
+}
+
+TEST_F(WireRoundTrip, TwoFastddsParticipantsOfOneProcessDiscoverThroughTheTransportAndExchangeData) {
+  // Discovery delivered in-process can deadlock Fast DDS 2.9 when a process holding several
+  // participants deletes a writer while a remote participant's lease runs out (idl/wire/src/
+  // fastdds.cpp): the library keeps discovery on the transport, user data in-process.
+  const auto bytes = sample_map();
+  FastddsParticipant a(options());
+  EXPECT_EQ(eprosima::fastrtps::xmlparser::XMLProfileManager::library_settings().intraprocess_delivery,
+            eprosima::fastrtps::INTRAPROCESS_USER_DATA_ONLY);
+  auto* writer = a.create_writer(a.topic<mapmerge::MapUpdatePubSubType>(map_topic("r3")), TopicKind::State);
+  mapmerge::MapUpdate update;
+  update.robot_id("r3");
+  update.sequence_number(5);
+  update.encoding("octomap-bt");
+  update.data(bytes);
+  ASSERT_TRUE(writer->write(&update));
+  {
+    FastddsParticipant b(options());
+    auto* reader = b.create_reader(b.topic<mapmerge::MapUpdatePubSubType>(map_topic("r3")), TopicKind::State);
+    mapmerge::MapUpdate received;
+    ASSERT_TRUE(fastdds_take_one(reader, received)) << "no map update reached the other participant";
+    EXPECT_EQ(received.sequence_number(), 5u);
+    EXPECT_EQ(received.data(), bytes);
+  }
+  // The reader's participant is gone; the writer's deletes its writer after it (the order of the
+  // hang seen).
 }
 
 TEST_F(WireRoundTrip, RosOctomapFromFastddsToCyclone) {

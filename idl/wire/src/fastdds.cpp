@@ -6,6 +6,7 @@
 #include <fastdds/dds/domain/DomainParticipantFactory.hpp>
 #include <fastdds/dds/domain/qos/DomainParticipantQos.hpp>
 #include <fastdds/rtps/common/Locator.h>
+#include <fastrtps/attributes/LibrarySettingsAttributes.h>
 #include <fastrtps/utils/IPLocator.h>
 #include <fastrtps/xmlparser/XMLProfileManager.h>
 
@@ -47,6 +48,17 @@ void load_embedded_profiles() {
     load_xml(embedded::kFastddsQos, "mapmerge QoS");
     load_xml(embedded::kFastddsLocal, "local");
     load_xml(embedded::kFastddsDefault, "default");
+    // Discovery between participants of one process goes through the transport, user data
+    // still directly (a profile file the user loads may say otherwise). With discovery delivered
+    // in-process (Fast DDS's default) Fast DDS 2.9 can deadlock in a process holding several
+    // participants: deleting a writer hands its disposal to another participant's discovery
+    // listener, which waits for that participant's PDP lock, while its holder waits for the
+    // event thread, which waits for the deleting writer's lock (every thread's stack from a test
+    // that hung so, after its server was killed: robots' and an observer's participants in one
+    // process, session 25).
+    eprosima::fastrtps::LibrarySettingsAttributes library;
+    library.intraprocess_delivery = eprosima::fastrtps::INTRAPROCESS_USER_DATA_ONLY;
+    eprosima::fastrtps::xmlparser::XMLProfileManager::library_settings(library);
   });
 }
 
