@@ -105,8 +105,22 @@ Prepared prepare(const octomap::OcTree& tree, const ma::AlignConfig& c) {
   return p;
 }
 
+/// Where an estimate's error lies: its turn as a rotation vector in the target frame [deg] and
+/// how far it moves the point `at` of the target frame [m]. T_err measures the error at the
+/// frame's origin, which a small turn moves far when the overlap lies far from it.
+std::string error_at(const Eigen::Matrix4d& T_est_target_source, const Eigen::Matrix4d& T_R, const Eigen::Vector3d& at) {
+  const Eigen::Isometry3d E(T_est_target_source * T_R);  // target -> target; identity when exact
+  const Eigen::AngleAxisd turn(E.linear());
+  const Eigen::Vector3d deg = turn.axis() * turn.angle() * 180.0 / M_PI;
+  char b[160];
+  std::snprintf(b, sizeof b, "turn (%.2f, %.2f, %.2f) deg, moves the overlap's centre %.3f m", deg.x(), deg.y(),
+                deg.z(), (E * at - at).norm());
+  return b;
+}
+
 Row run_case(const std::string& map, const Prepared& target, const Prepared& source,
-             const Variant& v, const Pose& pose, double overlap, bool floor_only = false) {
+             const Variant& v, const Pose& pose, double overlap, bool floor_only = false,
+             const Eigen::Vector3d& overlap_centre = Eigen::Vector3d::Zero()) {
   const auto t0 = Clock::now();
   ma::AlignResult r;
   if (!floor_only) r = ma::align(target.map, source.map, v.config);
@@ -134,7 +148,8 @@ Row run_case(const std::string& map, const Prepared& target, const Prepared& sou
     row.floor_fitness = from_truth.fitness;
     if (floor_only)
       std::cerr << std::lround(overlap * 100) << "% " << pose.str() << " from the truth: T_err " << fmt(floor.t_err)
-                << " rot " << fmt(floor.rot_deg, 2) << " trans " << fmt(floor.trans_m) << "\n";
+                << " rot " << fmt(floor.rot_deg, 2) << " trans " << fmt(floor.trans_m) << "; "
+                << error_at(from_truth.T_target_source, pose.matrix(), overlap_centre) << "\n";
   }
   if (r.accepted) {
     const Errors e = errors(r.T_target_source, pose.matrix());
@@ -340,6 +355,7 @@ int main(int argc, char** argv) {
     for (int pct : overlaps) {
       const auto [target_box, source_box] = mapmerge::overlap_cut(*tree, axis, pct / 100.0);
       auto target = on_grid(mapmerge::crop_and_transform(*tree, target_box, Eigen::Isometry3d::Identity()));
+      const Eigen::Vector3d overlap_centre = target_box.intersection(source_box).center();
       std::map<std::string, Prepared> target_cache;
       for (int t = 0; t < trials; ++t) {
         const Pose pose{shift(rng), shift(rng), lift(rng), tilt(rng), tilt(rng), yaw(rng)};
@@ -352,7 +368,7 @@ int main(int argc, char** argv) {
           const std::string key = prep_key(v.config);
           if (!target_cache.count(key)) target_cache[key] = prepare(*target, v.config);
           if (!source_cache.count(key)) source_cache[key] = prepare(*source, v.config);
-          rows.push_back(run_case(name, target_cache[key], source_cache[key], v, pose, pct / 100.0, floor_only));
+          rows.push_back(run_case(name, target_cache[key], source_cache[key], v, pose, pct / 100.0, floor_only, overlap_centre));
           const Row& r = rows.back();
           if (floor_only) continue;  // run_case printed the floor
           std::cerr << pct << "% " << pose.str() << " " << v.name << ": "
