@@ -123,17 +123,36 @@ std::unique_ptr<octomap::OcTree> crop_and_transform(const octomap::OcTree& tree,
 
 std::unique_ptr<octomap::OcTree> coarsen(const octomap::OcTree& tree, int factor) {
   if (factor < 1) throw std::invalid_argument("coarsen: factor must be >= 1");
-  auto out = std::make_unique<octomap::OcTree>(tree.getResolution() * factor);
+  const double res = tree.getResolution();
+  auto out = std::make_unique<octomap::OcTree>(res * factor);
   out->setClampingThresMin(tree.getClampingThresMin());
   out->setClampingThresMax(tree.getClampingThresMax());
   out->setOccupancyThres(tree.getOccupancyThres());
-  const Eigen::AlignedBox3d all(Eigen::Vector3d::Constant(-1e9), Eigen::Vector3d::Constant(1e9));
+  // A leaf's full-resolution centres form a lattice; along each axis the coarse keys they fall
+  // in are one run of keys, so the coarse voxels the leaf decides are the product of three
+  // runs. A large pruned leaf then costs its coarse voxels, not factor^3 times as many fine
+  // ones. Same result as setting the coarse voxel of every fine centre, leaf by leaf.
   for (const bool want_occupied : {false, true}) {  // occupied last: it wins a coarse voxel
-    for_each_voxel(tree, all, [&](const Eigen::Vector3d& p, float value, bool occupied) {
-      octomap::OcTreeKey key;
-      if (occupied == want_occupied && out->coordToKeyChecked(p.x(), p.y(), p.z(), key))
-        out->setNodeValue(key, value, /*lazy_eval=*/true);
-    });
+    for (auto it = tree.begin_leafs(), end = tree.end_leafs(); it != end; ++it) {
+      if (tree.isNodeOccupied(*it) != want_occupied) continue;
+      const float value = it->getLogOdds();
+      const double from_centre = it.getSize() / 2.0 - 0.5 * res;  // to the leaf's outer fine centres
+      const octomap::point3d c = it.getCoordinate();
+      octomap::OcTreeKey lo, hi;
+      bool inside = true;
+      for (unsigned a = 0; a < 3; ++a) {
+        inside = inside && out->coordToKeyChecked(c(a) - from_centre, lo[a]) &&
+                 out->coordToKeyChecked(c(a) + from_centre, hi[a]);
+      }
+      if (!inside) continue;  // beyond the coarse tree's key range
+      for (unsigned x = lo[0]; x <= hi[0]; ++x)
+        for (unsigned y = lo[1]; y <= hi[1]; ++y)
+          for (unsigned z = lo[2]; z <= hi[2]; ++z) {
+            const octomap::OcTreeKey k(static_cast<octomap::key_type>(x), static_cast<octomap::key_type>(y),
+                                       static_cast<octomap::key_type>(z));
+            out->setNodeValue(k, value, /*lazy_eval=*/true);
+          }
+    }
   }
   out->updateInnerOccupancy();
   out->prune();
