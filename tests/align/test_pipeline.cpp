@@ -102,6 +102,21 @@ TEST(AlignPipeline, SameDefaultsRecoverAnOutdoorScaleMap) {
   EXPECT_LT(e.trans_m, coarse->getResolution());
 }
 
+TEST(AlignPipeline, SameDefaultsRecoverTwoOutdoorScaleMapsEachQuantisedOnItsOwnGrid) {
+  // As two robots mapping at 0.2 m hold one place: each part cut and moved at 5 cm, then
+  // coarsened on its own grid, so neither is a resampling of the other's voxels and each wall
+  // lies up to half a voxel off in each (bench/results/align_fr_079_20cm_parts.md).
+  const Pair fine = make_pair(fr079(), box(-20, -10, -1, 6, 10, 4), box(-4, -10, -1, 24, 10, 4),
+                              mapmerge::paper_transform(6, -3, 0.2, 2, -3, 120));
+  const Pair p{mapmerge::coarsen(*fine.target, 4), mapmerge::coarsen(*fine.source, 4), fine.T_true};
+  ASSERT_NEAR(p.source->getResolution(), 0.2, 1e-9);
+  const ma::AlignResult r = ma::align_maps(*p.target, *p.source, ma::AlignConfig{});
+  ASSERT_TRUE(r.accepted) << r.reason;
+  const Errors e = errors(r.T_target_source, p.T_true);
+  EXPECT_LT(e.rot_deg, 1.0);
+  EXPECT_LT(e.trans_m, p.source->getResolution());
+}
+
 TEST(AlignPipeline, SameDefaultsRecoverAMapOnA2cmGrid) {
   // The room cut and moved at its 5 cm, then both parts resampled onto a 2 cm grid (RGB-D
   // voxels; ~0.9M points each, the detail still that of 5 cm): no preset. Features see the
