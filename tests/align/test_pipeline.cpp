@@ -238,6 +238,57 @@ TEST(AlignPipeline, ACorridorSlidAlongItselfThatFreeSpaceContradictsDoesNotOutra
   EXPECT_LT(r.overlap, 0.4);  // the truth's overlap (~0.19), not the turned corridor's (~0.6)
 }
 
+TEST(AlignPipeline, AMapLaidOnItsSideIsNotAcceptedAndLeavesItsPlaceToTheUprightTruth) {
+  // fr_079 as two robots mapping at 20 cm hold it (mapmerge_bench_align --coarsen 4
+  // --coarsen-parts), the parts sharing 10 % of the voxels, the source moved by the bench's 4th
+  // transform at 10 % (--seed 13): (2.3, -6.4, 0.2, 4°, 0°, -11°). One refined candidate is the
+  // source rolled ~90 deg, its walls laid on the other map's floor: fitness 0.147 m (the limit is
+  // 0.15), inlier share 0.993. With any turn allowed it wins, 93 deg and 20 m off.
+  // validate.max_tilt_deg drops it before refinement; then the rescue's search finds the truth.
+  const auto coarse = mapmerge::coarsen(fr079(), 4);
+  const auto [target_box, source_box] = mapmerge::overlap_cut(*coarse, 0, 0.10);
+  const Pair fine = make_pair(fr079(), target_box, source_box,
+                              mapmerge::paper_transform(2.2890819982132538, -6.393865075156401, 0.22286862948655484,
+                                                        4.3910655128254987, 0.38388126371286635, -10.750369427167328));
+  const Pair p{mapmerge::coarsen(*fine.target, 4), mapmerge::coarsen(*fine.source, 4), fine.T_true};
+  const ma::PreparedMap target = ma::prepare_map(*p.target, ma::AlignConfig{});
+  const ma::PreparedMap source = ma::prepare_map(*p.source, ma::AlignConfig{});
+
+  ma::AlignConfig any_turn;
+  any_turn.validate.max_tilt_deg = 180.0;
+  const ma::AlignResult laid = ma::align(target, source, any_turn);
+  ASSERT_TRUE(laid.accepted) << "this pair no longer shows the rolled candidate: " << laid.reason;
+  EXPECT_GT(errors(laid.T_target_source, p.T_true).rot_deg, 45.0);
+  EXPECT_GT(ma::validate(target, source, laid.T_target_source, any_turn).tilt_deg, 45.0);
+
+  const ma::AlignResult r = ma::align(target, source, ma::AlignConfig{});
+  ASSERT_TRUE(r.accepted) << r.reason;
+  const Errors e = errors(r.T_target_source, p.T_true);
+  EXPECT_LT(e.rot_deg, 1.0);
+  EXPECT_LT(e.trans_m, p.target->getResolution());
+}
+
+TEST(AlignPipeline, ATransformTiltedBeyondTheBoundIsRefusedWithItsTilt) {
+  // The paper's pair: T_R turns by roll 5°, pitch 5°, yaw 60°, so the source's z axis lies
+  // acos(cos 5° cos 5°) = 7.07° from the target's.
+  const Pair p = make_pair(fr079(), box(-10, -10, 0, 2, 10, 2), box(-2, -10, 0, 10, 10, 2),
+                           mapmerge::paper_transform(12, 6, 0.5, 5, 5, 60));
+  const ma::PreparedMap target = ma::prepare_map(*p.target, ma::AlignConfig{});
+  const ma::PreparedMap source = ma::prepare_map(*p.source, ma::AlignConfig{});
+  const double tilt = std::acos(std::cos(5.0 * M_PI / 180.0) * std::cos(5.0 * M_PI / 180.0)) * 180.0 / M_PI;
+  EXPECT_NEAR(ma::validate(target, source, p.T_true, ma::AlignConfig{}).tilt_deg, tilt, 1e-6);
+
+  const ma::AlignResult upright = ma::refine(target, source, p.T_true, ma::AlignConfig{});
+  ASSERT_TRUE(upright.accepted) << upright.reason;
+  ma::AlignConfig strict;
+  strict.validate.max_tilt_deg = 6.0;
+  const ma::AlignResult refused = ma::refine(target, source, p.T_true, strict);
+  EXPECT_FALSE(refused.accepted);
+  EXPECT_NE(refused.reason.find("validate.max_tilt_deg"), std::string::npos) << refused.reason;
+  const ma::AlignResult searched = ma::align(target, source, strict);  // no upright transform to find
+  EXPECT_FALSE(searched.accepted);
+}
+
 TEST(AlignPipeline, AnAmbiguousRefusalIsFinalAndGetsNoSecondSearch) {
   // The bench's 6th transform at 10 % (--seed 1): (0.9, 1.7, -0.1, -3°, -2°, -129°). With the
   // final pass at 30 ICP iterations (the default before refine.final_iterations), a near-true

@@ -113,6 +113,7 @@ Validation check(const PreparedMap::Impl& target, const PreparedMap::Impl& sourc
   v.overlap = v.checked ? seen / static_cast<double>(v.checked) : 0.0;
   v.inlier_share = seen > 0.0 ? static_cast<double>(v.inliers) / seen : 0.0;
   v.inlier_fraction = v.checked ? static_cast<double>(v.inliers) / static_cast<double>(v.checked) : 0.0;
+  v.tilt_deg = std::acos(std::clamp(T_target_source(2, 2), -1.0, 1.0)) * 180.0 / M_PI;  // (R e_z) . e_z
   return v;
 }
 
@@ -124,7 +125,10 @@ double score_of(const Validation& v, double conflict_weight) {
 /// Empty string when `v` passes every acceptance test, else the reason.
 std::string rejection(const Validation& v, const ValidateConfig& c, double res) {
   std::ostringstream why;
-  if (!std::isfinite(v.fitness)) {
+  if (v.tilt_deg > c.max_tilt_deg) {
+    why << "tilts the source's z axis " << v.tilt_deg << " deg from the target's, above validate.max_tilt_deg "
+        << c.max_tilt_deg;
+  } else if (!std::isfinite(v.fitness)) {
     why << "fewer than n_th=" << c.n_th << " point pairs within d_th (" << v.inliers << ")";
   } else if (v.fitness > c.max_fitness * res) {
     why << "fitness " << v.fitness << " m above " << c.max_fitness * res << " m";
@@ -393,7 +397,8 @@ std::vector<Candidate> search_blocks(const PreparedMap::Impl& target, const Prep
         Candidate cand;
         cand.h = h;
         cand.coarse = check(target, source, h.T_target_source, vc.coarse_points, vc, 1, res);
-        const bool good = cand.coarse.inlier_share >= cfg.submodels.early_stop_inlier_share &&
+        const bool good = cand.coarse.tilt_deg <= vc.max_tilt_deg &&
+                          cand.coarse.inlier_share >= cfg.submodels.early_stop_inlier_share &&
                           cand.coarse.inlier_fraction >= vc.min_inlier_fraction &&
                           cand.coarse.fitness <= vc.max_fitness * res;
         std::lock_guard<std::mutex> g(lock);
@@ -414,6 +419,11 @@ std::vector<Candidate> search_blocks(const PreparedMap::Impl& target, const Prep
 /// Keeps the best distinct candidates by coarse score.
 std::vector<Candidate> shortlist(std::vector<Candidate> all, const ValidateConfig& c,
                                  const LengthUnits& units) {
+  // One tilted beyond the bound cannot pass: it neither sets the score floor nor takes a
+  // refinement slot from an upright one.
+  all.erase(std::remove_if(all.begin(), all.end(),
+                           [&c](const Candidate& k) { return k.coarse.tilt_deg > c.max_tilt_deg; }),
+            all.end());
   const double w = c.conflict_weight;
   std::sort(all.begin(), all.end(), [w](const Candidate& a, const Candidate& b) {
     return score_of(a.coarse, w) > score_of(b.coarse, w);

@@ -79,6 +79,7 @@ void for_each_field(Config& c, F&& f) {
   f("validate", "conflict_distance", v.conflict_distance);
   f("validate", "min_inlier_share", v.min_inlier_share);
   f("validate", "conflict_weight", v.conflict_weight);
+  f("validate", "max_tilt_deg", v.max_tilt_deg);
   f("validate", "ambiguity_ratio", v.ambiguity_ratio);
   f("validate", "distinct_rotation_deg", v.distinct_rotation_deg);
   f("validate", "distinct_translation", v.distinct_translation);
@@ -261,6 +262,7 @@ void check_align_config(const AlignConfig& c) {
   require(c.validate.d_th > 0.0, "validate.d_th > 0");
   require(c.validate.min_inlier_share >= 0.0 && c.validate.min_inlier_share <= 1.0,
           "validate.min_inlier_share in [0, 1]");
+  require(c.validate.max_tilt_deg >= 0.0 && c.validate.max_tilt_deg <= 180.0, "validate.max_tilt_deg in [0, 180]");
   require(c.validate.coarse_points >= 10, "validate.coarse_points >= 10");
   require(c.validate.refine_candidates >= 1, "validate.refine_candidates >= 1");
   require(c.refine.max_iterations >= 1, "refine.max_iterations >= 1");

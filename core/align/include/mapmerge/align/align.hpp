@@ -46,6 +46,7 @@ struct Validation {
   double overlap = 0.0;         ///< (inliers + conflicts) / checked: share seen by both maps [0..1]
   double inlier_share = 0.0;    ///< inliers / (inliers + conflicts) [0..1]
   double inlier_fraction = 0.0;  ///< inliers / checked [0..1]
+  double tilt_deg = 0.0;        ///< angle between the target's z axis and the source's under the transform [deg]
 };
 
 struct AlignResult {

@@ -116,6 +116,13 @@ struct ValidateConfig {
                                    ///< the other map's known free space contradicts the transform [x res]
   double min_inlier_share = 0.98;  ///< inliers / (inliers + contradictions) to accept [0..1]
   double conflict_weight = 5.0;  ///< ranking score = inliers - conflict_weight * contradictions [ratio]
+  /// Largest angle between the two maps' z axes under a transform [deg]; 180 = any turn. A
+  /// robot's map frame has z up (REP 105; SLAM with an IMU, octomap_server), so two maps of
+  /// ground robots differ in tilt by a few degrees at most. Without this bound a 20 cm pair at
+  /// 10 % overlap was once merged laid on its side (a 90 deg roll that put walls on the floor:
+  /// fitness 0.74 res, inlier share 0.993), and such hypotheses took the refinement slots from
+  /// upright ones (bench/results/README.md, session 26).
+  double max_tilt_deg = 30.0;
   double ambiguity_ratio = 0.85;  ///< reject when a distinct hypothesis that free space does not contradict scores at least this share of the best that passes [0..1]
   double distinct_rotation_deg = 5.0;  ///< hypotheses differing more than this are distinct [deg]
   double distinct_translation = 10.0;  ///< ... or more than this [x u]
