@@ -47,6 +47,15 @@ Pair make_pair(const octomap::OcTree& tree, const Box& a, const Box& b, const Ei
           mapmerge::crop_and_transform(tree, b, Eigen::Isometry3d(T_R)), T_R.inverse()};
 }
 
+/// The default pipeline places p's source within 1 deg and `max_trans` [m] of the truth.
+void expect_placed_by_defaults(const Pair& p, double max_trans) {
+  const ma::AlignResult r = ma::align_maps(*p.target, *p.source, ma::AlignConfig{});
+  ASSERT_TRUE(r.accepted) << r.reason;
+  const Errors e = errors(r.T_target_source, p.T_true);
+  EXPECT_LT(e.rot_deg, 1.0);
+  EXPECT_LT(e.trans_m, max_trans);
+}
+
 const octomap::OcTree& fr079() {
   static const auto tree = load("fr_079.bt");
   return *tree;
@@ -82,11 +91,7 @@ TEST(AlignPipeline, RecoversLargeYawOnACoarserMap) {
   const auto tree = load("geb079.bt");  // 8 cm
   const Pair p = make_pair(*tree, box(-9, -9, -1, 12, 9, 4), box(6, -9, -1, 31, 9, 4),
                            mapmerge::paper_transform(-4, 7, 0.3, -3, 2, 155));
-  const ma::AlignResult r = ma::align_maps(*p.target, *p.source, ma::AlignConfig{});
-  ASSERT_TRUE(r.accepted) << r.reason;
-  const Errors e = errors(r.T_target_source, p.T_true);
-  EXPECT_LT(e.rot_deg, 1.0);
-  EXPECT_LT(e.trans_m, 2 * tree->getResolution());
+  expect_placed_by_defaults(p, 2 * tree->getResolution());
 }
 
 TEST(AlignPipeline, SameDefaultsRecoverAnOutdoorScaleMap) {
@@ -95,11 +100,7 @@ TEST(AlignPipeline, SameDefaultsRecoverAnOutdoorScaleMap) {
   ASSERT_NEAR(coarse->getResolution(), 0.2, 1e-9);
   const Pair p = make_pair(*coarse, box(-20, -10, -1, 6, 10, 4), box(-4, -10, -1, 24, 10, 4),
                            mapmerge::paper_transform(6, -3, 0.2, 2, -3, 120));
-  const ma::AlignResult r = ma::align_maps(*p.target, *p.source, ma::AlignConfig{});
-  ASSERT_TRUE(r.accepted) << r.reason;
-  const Errors e = errors(r.T_target_source, p.T_true);
-  EXPECT_LT(e.rot_deg, 1.0);
-  EXPECT_LT(e.trans_m, coarse->getResolution());
+  expect_placed_by_defaults(p, coarse->getResolution());
 }
 
 TEST(AlignPipeline, SameDefaultsRecoverTwoOutdoorScaleMapsEachQuantisedOnItsOwnGrid) {
@@ -110,11 +111,7 @@ TEST(AlignPipeline, SameDefaultsRecoverTwoOutdoorScaleMapsEachQuantisedOnItsOwnG
                               mapmerge::paper_transform(6, -3, 0.2, 2, -3, 120));
   const Pair p{mapmerge::coarsen(*fine.target, 4), mapmerge::coarsen(*fine.source, 4), fine.T_true};
   ASSERT_NEAR(p.source->getResolution(), 0.2, 1e-9);
-  const ma::AlignResult r = ma::align_maps(*p.target, *p.source, ma::AlignConfig{});
-  ASSERT_TRUE(r.accepted) << r.reason;
-  const Errors e = errors(r.T_target_source, p.T_true);
-  EXPECT_LT(e.rot_deg, 1.0);
-  EXPECT_LT(e.trans_m, p.source->getResolution());
+  expect_placed_by_defaults(p, p.source->getResolution());
 }
 
 TEST(AlignPipeline, SameDefaultsRecoverAMapOnA2cmGrid) {
@@ -126,11 +123,7 @@ TEST(AlignPipeline, SameDefaultsRecoverAMapOnA2cmGrid) {
                                 mapmerge::paper_transform(2, -1, 0.2, -3, 2, 70));
   const Pair p{mapmerge::refine(*coarse.target, 0.02), mapmerge::refine(*coarse.source, 0.02), coarse.T_true};
   ASSERT_NEAR(p.target->getResolution(), 0.02, 1e-12);
-  const ma::AlignResult r = ma::align_maps(*p.target, *p.source, ma::AlignConfig{});
-  ASSERT_TRUE(r.accepted) << r.reason;
-  const Errors e = errors(r.T_target_source, p.T_true);
-  EXPECT_LT(e.rot_deg, 1.0);
-  EXPECT_LT(e.trans_m, tree->getResolution());
+  expect_placed_by_defaults(p, tree->getResolution());
 }
 
 TEST(AlignPipeline, GroundRemovalLeavesTheFloorToIcpAndFindsTheSameTransform) {
