@@ -252,9 +252,31 @@ void compute_feature(Estimator& est, const Cloud::Ptr& cloud, const SerialKdTree
 }
 
 /// Stage 5 at `indices` of m.coarse; `tree` indexes m.coarse.
-void describe(PreparedMap::Impl& m, const SerialKdTree<Point>::Ptr& tree, const pcl::IndicesPtr& indices,
+void describe(PreparedMap::Impl& m, SerialKdTree<Point>::Ptr tree, pcl::IndicesPtr indices,
               const DescribeConfig& c, double unit) {
   const double radius = c.radius * unit;
+  // PCL's FPFH and SHOT read every neighbour's normal. A point without a plane (NaN normal: its
+  // neighbours lie on a line, e.g. a pole on a 20 cm grid) gives NaN angles, which PCL casts to a
+  // histogram bin: undefined behaviour (UBSan in fpfh.hpp). Such points take no part: they are
+  // left out of the described cloud, and a keypoint among them has no descriptor anyway.
+  const auto planar = [](const Point& p) { return std::isfinite(p.normal_x) && std::isfinite(p.normal_y) &&
+                                                  std::isfinite(p.normal_z); };
+  if (!std::all_of(m.coarse->begin(), m.coarse->end(), planar)) {
+    auto kept = std::make_shared<Cloud>();
+    std::vector<int> new_index(m.coarse->size(), -1);
+    for (std::size_t i = 0; i < m.coarse->size(); ++i) {
+      if (!planar((*m.coarse)[i])) continue;
+      new_index[i] = static_cast<int>(kept->size());
+      kept->push_back((*m.coarse)[i]);
+    }
+    auto kept_indices = std::make_shared<pcl::Indices>();
+    for (const auto i : *indices)
+      if (new_index[static_cast<std::size_t>(i)] >= 0) kept_indices->push_back(new_index[static_cast<std::size_t>(i)]);
+    m.coarse = kept;
+    tree = std::make_shared<SerialKdTree<Point>>();
+    if (!kept->empty()) tree->setInputCloud(kept);
+    indices = kept_indices;
+  }
   const unsigned threads = static_cast<unsigned>(std::max(1, c.threads));
   if (c.method == Descriptor::kFpfh) {
     auto features = std::make_shared<pcl::PointCloud<Fpfh>>();
