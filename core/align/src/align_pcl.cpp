@@ -97,6 +97,11 @@ Counts check_direction(const PreparedMap::Impl& from, const PreparedMap::Impl& t
 }
 
 /// Both directions: source into target and target into source; `res`: the "x res" unit.
+/// Angle between the target's z axis and the source's under T_target_source [deg]: (R e_z) . e_z.
+double tilt_deg(const Eigen::Matrix4d& T_target_source) {
+  return std::acos(std::clamp(T_target_source(2, 2), -1.0, 1.0)) * 180.0 / M_PI;
+}
+
 Validation check(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
                  const Eigen::Matrix4d& T_target_source, std::size_t samples,
                  const ValidateConfig& c, std::size_t n_th, double res) {
@@ -113,7 +118,7 @@ Validation check(const PreparedMap::Impl& target, const PreparedMap::Impl& sourc
   v.overlap = v.checked ? seen / static_cast<double>(v.checked) : 0.0;
   v.inlier_share = seen > 0.0 ? static_cast<double>(v.inliers) / seen : 0.0;
   v.inlier_fraction = v.checked ? static_cast<double>(v.inliers) / static_cast<double>(v.checked) : 0.0;
-  v.tilt_deg = std::acos(std::clamp(T_target_source(2, 2), -1.0, 1.0)) * 180.0 / M_PI;  // (R e_z) . e_z
+  v.tilt_deg = tilt_deg(T_target_source);
   return v;
 }
 
@@ -393,12 +398,14 @@ std::vector<Candidate> search_blocks(const PreparedMap::Impl& target, const Prep
       raw_count += hyps.size();
       t0 = Clock::now();
       for (Hypothesis& h : hyps) {
+        // One tilted beyond the bound cannot pass: it is not checked, cannot stop the search
+        // early, and takes no refinement slot from an upright one.
+        if (tilt_deg(h.T_target_source) > vc.max_tilt_deg) continue;
         h.submodel = cfg.submodels.enabled ? static_cast<int>(i) : -1;
         Candidate cand;
         cand.h = h;
         cand.coarse = check(target, source, h.T_target_source, vc.coarse_points, vc, 1, res);
-        const bool good = cand.coarse.tilt_deg <= vc.max_tilt_deg &&
-                          cand.coarse.inlier_share >= cfg.submodels.early_stop_inlier_share &&
+        const bool good = cand.coarse.inlier_share >= cfg.submodels.early_stop_inlier_share &&
                           cand.coarse.inlier_fraction >= vc.min_inlier_fraction &&
                           cand.coarse.fitness <= vc.max_fitness * res;
         std::lock_guard<std::mutex> g(lock);
@@ -419,11 +426,6 @@ std::vector<Candidate> search_blocks(const PreparedMap::Impl& target, const Prep
 /// Keeps the best distinct candidates by coarse score.
 std::vector<Candidate> shortlist(std::vector<Candidate> all, const ValidateConfig& c,
                                  const LengthUnits& units) {
-  // One tilted beyond the bound cannot pass: it neither sets the score floor nor takes a
-  // refinement slot from an upright one.
-  all.erase(std::remove_if(all.begin(), all.end(),
-                           [&c](const Candidate& k) { return k.coarse.tilt_deg > c.max_tilt_deg; }),
-            all.end());
   const double w = c.conflict_weight;
   std::sort(all.begin(), all.end(), [w](const Candidate& a, const Candidate& b) {
     return score_of(a.coarse, w) > score_of(b.coarse, w);

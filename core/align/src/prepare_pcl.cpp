@@ -259,8 +259,7 @@ void describe(PreparedMap::Impl& m, SerialKdTree<Point>::Ptr tree, pcl::IndicesP
   // neighbours lie on a line, e.g. a pole on a 20 cm grid) gives NaN angles, which PCL casts to a
   // histogram bin: undefined behaviour (UBSan in fpfh.hpp). Such points take no part: they are
   // left out of the described cloud, and a keypoint among them has no descriptor anyway.
-  const auto planar = [](const Point& p) { return std::isfinite(p.normal_x) && std::isfinite(p.normal_y) &&
-                                                  std::isfinite(p.normal_z); };
+  const auto planar = [](const Point& p) { return pcl::isNormalFinite(p); };
   if (!std::all_of(m.coarse->begin(), m.coarse->end(), planar)) {
     auto kept = std::make_shared<Cloud>();
     std::vector<int> new_index(m.coarse->size(), -1);
