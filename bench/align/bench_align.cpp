@@ -306,12 +306,13 @@ int main(int argc, char** argv) {
     std::unique_ptr<octomap::OcTree> tree = mapmerge::read_octree_file(map_path);
     // With --coarsen-parts, `fine` is what the parts are cut from; `tree` (coarse) still sets the cut.
     std::unique_ptr<octomap::OcTree> fine;
-    if (coarsen > 1 && coarsen_parts) fine = std::make_unique<octomap::OcTree>(*tree);
-    if (coarsen > 1) tree = mapmerge::coarsen(*tree, coarsen);
+    if (coarsen > 1 && coarsen_parts) fine = std::move(tree);
+    if (coarsen > 1) tree = mapmerge::coarsen(fine ? *fine : *tree, coarsen);
     std::string name = map_path.substr(map_path.find_last_of('/') + 1);
     if (z_min > -1e8 || z_max < 1e8) {
       const Eigen::AlignedBox3d slab(Eigen::Vector3d(-1e6, -1e6, z_min), Eigen::Vector3d(1e6, 1e6, z_max));
       tree = mapmerge::crop_and_transform(*tree, slab, Eigen::Isometry3d::Identity());
+      if (fine) fine = mapmerge::crop_and_transform(*fine, slab, Eigen::Isometry3d::Identity());
       name += " z " + fmt(z_min, 1) + ".." + fmt(z_max, 1) + " m";
     }
     if (coarsen > 1) name += " @" + fmt(tree->getResolution(), 2) + "m" + (fine ? " (parts)" : "");
