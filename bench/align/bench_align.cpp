@@ -106,15 +106,16 @@ Prepared prepare(const octomap::OcTree& tree, const ma::AlignConfig& c) {
 }
 
 /// Where an estimate's error lies: its turn as a rotation vector in the target frame [deg] and
-/// how far it moves the point `at` of the target frame [m]. T_err measures the error at the
+/// how far (and which way) it moves the point `at` of the target frame [m]. T_err measures the error at the
 /// frame's origin, which a small turn moves far when the overlap lies far from it.
 std::string error_at(const Eigen::Matrix4d& T_est_target_source, const Eigen::Matrix4d& T_R, const Eigen::Vector3d& at) {
   const Eigen::Isometry3d E(T_est_target_source * T_R);  // target -> target; identity when exact
   const Eigen::AngleAxisd turn(E.linear());
   const Eigen::Vector3d deg = turn.axis() * turn.angle() * 180.0 / M_PI;
-  char b[160];
-  std::snprintf(b, sizeof b, "turn (%.2f, %.2f, %.2f) deg, moves the overlap's centre %.3f m", deg.x(), deg.y(),
-                deg.z(), (E * at - at).norm());
+  const Eigen::Vector3d moved = E * at - at;
+  char b[200];
+  std::snprintf(b, sizeof b, "turn (%.2f, %.2f, %.2f) deg, moves the overlap's centre %.3f m (%.2f, %.2f, %.2f)",
+                deg.x(), deg.y(), deg.z(), moved.norm(), moved.x(), moved.y(), moved.z());
   return b;
 }
 
@@ -148,7 +149,8 @@ Row run_case(const std::string& map, const Prepared& target, const Prepared& sou
     row.floor_fitness = from_truth.fitness;
     if (floor_only)
       std::cerr << std::lround(overlap * 100) << "% " << pose.str() << " from the truth: T_err " << fmt(floor.t_err)
-                << " rot " << fmt(floor.rot_deg, 2) << " trans " << fmt(floor.trans_m) << "; "
+                << " rot " << fmt(floor.rot_deg, 2) << " trans " << fmt(floor.trans_m) << " fitness "
+                << fmt(from_truth.fitness, 4) << (from_truth.accepted ? "" : " (refused: " + from_truth.reason + ")") << "; "
                 << error_at(from_truth.T_target_source, pose.matrix(), overlap_centre) << "\n";
   }
   if (r.accepted) {
