@@ -46,6 +46,7 @@ TEST(AlignConfig, BadValuesAreErrors) {
   EXPECT_THROW(ma::parse_align_config("validate: {d_th: abc}\n"), ma::ConfigError);
   EXPECT_THROW(ma::parse_align_config("validate: {d_th: -1}\n"), ma::ConfigError);
   EXPECT_THROW(ma::parse_align_config("validate: {max_tilt_deg: 181}\n"), ma::ConfigError);
+  EXPECT_THROW(ma::parse_align_config("validate: {max_pair_distance: -0.1}\n"), ma::ConfigError);
   EXPECT_EQ(ma::parse_align_config("validate: {max_tilt_deg: 180}\n").validate.max_tilt_deg, 180.0);
   EXPECT_THROW(ma::parse_align_config("[1, 2]\n"), ma::ConfigError);
   EXPECT_THROW(ma::parse_align_config("match: {method: [\n"), ma::ConfigError);

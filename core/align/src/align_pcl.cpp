@@ -53,9 +53,16 @@ double tolerance_of(const PreparedMap::Impl& a, const PreparedMap::Impl& b, cons
 // Stage 7: validation.
 
 struct Counts {
-  std::size_t inliers = 0, conflicts = 0, checked = 0;
+  std::size_t inliers = 0, close = 0, conflicts = 0, checked = 0;
   double sum = 0.0;
 };
+
+/// The ranking's pair distance for the "x res" unit `res` [m]: validate.d_th, capped by
+/// max_pair_distance but never below one voxel.
+double close_distance(const ValidateConfig& c, double res) {
+  const double d = c.d_th * res;
+  return c.max_pair_distance > 0.0 ? std::max(std::min(d, c.max_pair_distance), res) : d;
+}
 
 /// Points of `from` (every `step`-th, full resolution) moved by T_to_from into `to`.
 Counts check_direction(const PreparedMap::Impl& from, const PreparedMap::Impl& to,
@@ -64,7 +71,7 @@ Counts check_direction(const PreparedMap::Impl& from, const PreparedMap::Impl& t
   const Eigen::Matrix4f T = T_to_from.cast<float>();
   const std::size_t n = from.full->size();
   const std::size_t step = std::max<std::size_t>(1, n / std::max<std::size_t>(1, samples));
-  const double d_th = c.d_th * res, d_conflict = c.conflict_distance * res;
+  const double d_th = c.d_th * res, d_close = close_distance(c, res), d_conflict = c.conflict_distance * res;
   // Nothing further than both distances changes the counts: the tree need not look beyond.
   const double reach = std::max(d_th, d_conflict);
   return tbb::parallel_reduce(
@@ -80,6 +87,7 @@ Counts check_direction(const PreparedMap::Impl& from, const PreparedMap::Impl& t
           const double d = near ? std::sqrt(static_cast<double>(d2[0])) : std::numeric_limits<double>::infinity();
           if (d <= d_th) {
             ++acc.inliers;
+            acc.close += d <= d_close;
             acc.sum += d;
           } else if (d > d_conflict) {
             if (to.free_space->contains(Eigen::Vector3d(p.x, p.y, p.z))) ++acc.conflicts;
@@ -89,6 +97,7 @@ Counts check_direction(const PreparedMap::Impl& from, const PreparedMap::Impl& t
       },
       [](Counts a, const Counts& b) {
         a.inliers += b.inliers;
+        a.close += b.close;
         a.conflicts += b.conflicts;
         a.checked += b.checked;
         a.sum += b.sum;
@@ -109,6 +118,7 @@ Validation check(const PreparedMap::Impl& target, const PreparedMap::Impl& sourc
   const Counts b = check_direction(target, source, T_target_source.inverse(), samples, c, res);
   Validation v;
   v.inliers = a.inliers + b.inliers;
+  v.close_pairs = a.close + b.close;
   v.conflicts = a.conflicts + b.conflicts;
   v.checked = a.checked + b.checked;
   const bool enough = v.inliers >= n_th && v.inliers > 0;
@@ -122,9 +132,9 @@ Validation check(const PreparedMap::Impl& target, const PreparedMap::Impl& sourc
   return v;
 }
 
-/// Ranking score of a validated transform: agreement minus weighted contradiction.
+/// Ranking score of a validated transform: close agreement minus weighted contradiction.
 double score_of(const Validation& v, double conflict_weight) {
-  return static_cast<double>(v.inliers) - conflict_weight * static_cast<double>(v.conflicts);
+  return static_cast<double>(v.close_pairs) - conflict_weight * static_cast<double>(v.conflicts);
 }
 
 /// Empty string when `v` passes every acceptance test, else the reason.
@@ -271,7 +281,7 @@ Eigen::Matrix4d icp(const PreparedMap::Impl& source, const Cloud::Ptr& target_cr
   // Source: full-resolution voxel centres (not the downsampled cloud), so the result is not
   // quantised by the describe voxel; target: downsampled points with their local planes.
   const double last = c.final_correspondence * units.tolerance;
-  const double first = ramp ? c.max_correspondence * units.refine : last;
+  const double first = ramp ? std::max(c.max_correspondence * units.feature, 2.0 * last) : last;
   const Cloud src = overlap_sample(*source.full, tree, T0, first, max_points);
   Eigen::Matrix4d T = T0;
   const int ramp_its = std::max(1, iterations / 3);  // iterations to reach final_correspondence

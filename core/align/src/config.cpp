@@ -73,6 +73,7 @@ void for_each_field(Config& c, F&& f) {
   f("match", "gc_threshold", m.gc_threshold);
   auto& v = c.validate;
   f("validate", "d_th", v.d_th);
+  f("validate", "max_pair_distance", v.max_pair_distance);
   f("validate", "n_th", v.n_th);
   f("validate", "min_inlier_fraction", v.min_inlier_fraction);
   f("validate", "max_fitness", v.max_fitness);
@@ -260,6 +261,7 @@ void check_align_config(const AlignConfig& c) {
   require(c.match.min_consensus >= 3, "match.min_consensus >= 3");
   require(c.match.max_hypotheses >= 1, "match.max_hypotheses >= 1");
   require(c.validate.d_th > 0.0, "validate.d_th > 0");
+  require(c.validate.max_pair_distance >= 0.0, "validate.max_pair_distance >= 0");
   require(c.validate.min_inlier_share >= 0.0 && c.validate.min_inlier_share <= 1.0,
           "validate.min_inlier_share in [0, 1]");
   require(c.validate.max_tilt_deg >= 0.0 && c.validate.max_tilt_deg <= 180.0, "validate.max_tilt_deg in [0, 180]");

@@ -41,6 +41,7 @@ struct StageTimings {
 struct Validation {
   double fitness = std::numeric_limits<double>::infinity();  ///< Eq. 6 [m]; +inf if fewer than n_th pairs
   std::size_t inliers = 0;      ///< n_w of Eq. 8, both directions [count]
+  std::size_t close_pairs = 0;  ///< of those, pairs within the ranking distance (ValidateConfig::max_pair_distance) [count]
   std::size_t conflicts = 0;    ///< points landing in the other map's known free space [count]
   std::size_t checked = 0;      ///< points tested, both directions [count]
   double overlap = 0.0;         ///< (inliers + conflicts) / checked: share seen by both maps [0..1]

@@ -9,7 +9,7 @@
 ///    fixed metric length (5 cm by default) that grows with coarse maps only so far that the
 ///    describe cloud keeps at least one voxel per leaf (keypoints, descriptors, matching,
 ///    submodel blocks); the preprocess lengths use max(scale.feature_unit, res / preprocess.voxel_size);
-///  - "x max(u, res)": the refine search lengths (first ICP pair distance, crop margin, NDT).
+///  - "x max(u, res)": the refine search lengths (crop margin, NDT).
 /// At 5 cm all three are the resolution. Absolute units are named where they are used.
 
 #include <cstddef>
@@ -109,13 +109,20 @@ struct MatchConfig {
 /// Stage 7: hypothesis validation (Eq. 6-8) plus octree contradiction checks.
 struct ValidateConfig {
   double d_th = 2.0;             ///< pair distance counted in the fitness, Eq. 7 [x res]
+  /// Candidates are ranked by their pairs within d_th capped at this [m], never below one voxel
+  /// (the fitness and its limits keep d_th); 0 = no cap. Two robots' maps of one surface agree
+  /// within their sensors' noise and one voxel of grid: at 20 cm, ranking by pairs within 2 res
+  /// (0.4 m) preferred transforms a metre off in a furnished room, which find partners for more
+  /// points than the truth (bench/results/README.md, session 27). 0.1 m is 2 res at 5 cm, so
+  /// nothing changes at 5 cm and finer.
+  double max_pair_distance = 0.1;
   std::size_t n_th = 100;        ///< fewest pairs for a finite fitness, Eq. 8 [count]
   double min_inlier_fraction = 0.03;  ///< inliers / points of the smaller map, floor [0..1]
   double max_fitness = 0.75;     ///< accepted only if the fitness is below [x res]
   double conflict_distance = 3.0;  ///< a point further than this from any occupied point and inside
                                    ///< the other map's known free space contradicts the transform [x res]
   double min_inlier_share = 0.98;  ///< inliers / (inliers + contradictions) to accept [0..1]
-  double conflict_weight = 5.0;  ///< ranking score = inliers - conflict_weight * contradictions [ratio]
+  double conflict_weight = 5.0;  ///< ranking score = close pairs (max_pair_distance) - conflict_weight * contradictions [ratio]
   /// Largest angle between the two maps' z axes under a transform [deg]; 180 = any turn. A
   /// robot's map frame has z up (REP 105; SLAM with an IMU, octomap_server), so two maps of
   /// ground robots differ in tilt by a few degrees at most. Without this bound a 20 cm pair at
@@ -143,7 +150,11 @@ struct RefineConfig {
   /// grid ended 5-7 cm off where ICP from the truth ends 1-4 cm off (bench/results/README.md,
   /// session 22).
   int final_iterations = 60;
-  double max_correspondence = 4.0;  ///< ICP pair distance, first iteration [x max(u, res)]
+  /// ICP pair distance, first iteration [x u], at least twice the last (final_correspondence).
+  /// Pairs are gated on their plane distance, so source points that far past the end of the
+  /// target's surfaces pair with its edges and pull toward more overlap: at 4 x max(u, res)
+  /// (0.8 m at 20 cm) ICP from the true transform slid 0.65 m at 10 % overlap (session 27).
+  double max_correspondence = 4.0;
   double final_correspondence = 1.0;  ///< ICP pair distance reached by the last iterations [x res] (2 let coarse corridors slide 1.5 voxels)
   double crop_margin = 10.0;     ///< d_m: inflation of the source box when cropping the target [x max(u, res)]
   double convergence_translation = 0.05;  ///< stop when an update moves less than this [x res]
