@@ -106,8 +106,8 @@ Prepared prepare(const octomap::OcTree& tree, const ma::AlignConfig& c) {
 }
 
 /// Where an estimate's error lies: its turn as a rotation vector in the target frame [deg] and
-/// how far (and which way) it moves the point `at` of the target frame [m]. T_err measures the error at the
-/// frame's origin, which a small turn moves far when the overlap lies far from it.
+/// how far (and which way) it moves the point `at` of the target frame [m]. T_err measures the
+/// error at the frame's origin, which a small turn moves far when the overlap lies far from it.
 std::string error_at(const Eigen::Matrix4d& T_est_target_source, const Eigen::Matrix4d& T_R, const Eigen::Vector3d& at) {
   const Eigen::Isometry3d E(T_est_target_source * T_R);  // target -> target; identity when exact
   const Eigen::AngleAxisd turn(E.linear());

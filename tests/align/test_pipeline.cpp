@@ -61,23 +61,26 @@ const octomap::OcTree& fr079() {
   return *tree;
 }
 
+const octomap::OcTree& tidyup() {
+  static const auto tree = load("fr_078_tidyup.bt");
+  return *tree;
+}
+
 /// fr_078_tidyup cut as mapmerge_bench_align cuts it, the parts sharing 10 % of the occupied
 /// voxels (a 1.4 m strip), the source moved by T_R (one of the bench's transforms).
 Pair room_at_ten_percent(const Eigen::Matrix4d& T_R) {
-  static const auto tree = load("fr_078_tidyup.bt");
-  const auto [target_box, source_box] = mapmerge::overlap_cut(*tree, 0, 0.10);
-  return make_pair(*tree, target_box, source_box, T_R);
+  const auto [target_box, source_box] = mapmerge::overlap_cut(tidyup(), 0, 0.10);
+  return make_pair(tidyup(), target_box, source_box, T_R);
 }
 
 /// fr_078_tidyup as two robots mapping at 20 cm hold it (mapmerge_bench_align --coarsen 4
 /// --coarsen-parts): cut and moved at 5 cm, the parts sharing 10 % of the voxels (a 1.3 m strip
 /// across the room; `strip` = its centre in the target frame), then each coarsened on its own grid.
 Pair room_at_20cm(Eigen::Vector3d& strip) {
-  static const auto room = load("fr_078_tidyup.bt");
-  const auto coarse = mapmerge::coarsen(*room, 4);
+  const auto coarse = mapmerge::coarsen(tidyup(), 4);
   const auto [target_box, source_box] = mapmerge::overlap_cut(*coarse, 0, 0.10);
   strip = target_box.intersection(source_box).center();
-  const Pair fine = make_pair(*room, target_box, source_box, mapmerge::paper_transform(5.0, 4.3, -0.4, 5, -3, -37));
+  const Pair fine = make_pair(tidyup(), target_box, source_box, mapmerge::paper_transform(5.0, 4.3, -0.4, 5, -3, -37));
   return {mapmerge::coarsen(*fine.target, 4), mapmerge::coarsen(*fine.source, 4), fine.T_true};
 }
 
@@ -135,9 +138,10 @@ TEST(AlignPipeline, RefiningACoarseRoomFromTheTruthDoesNotSlideTowardMoreOverlap
   // README.md, session 27). The error is measured where it matters, at the strip's centre.
   Eigen::Vector3d strip;
   const Pair p = room_at_20cm(strip);
+  // Preparation does not depend on the refine settings compared below.
+  const ma::PreparedMap target = ma::prepare_for_refine(*p.target, ma::AlignConfig{});
+  const ma::PreparedMap source = ma::prepare_for_refine(*p.source, ma::AlignConfig{});
   const auto slide = [&](const ma::AlignConfig& config) {
-    const ma::PreparedMap target = ma::prepare_for_refine(*p.target, config);
-    const ma::PreparedMap source = ma::prepare_for_refine(*p.source, config);
     const ma::AlignResult r = ma::refine(target, source, p.T_true, config);
     EXPECT_TRUE(r.accepted) << r.reason;
     // T_est * T_true^-1 moves a target-frame point from where the truth puts it to where the

@@ -105,12 +105,12 @@ Counts check_direction(const PreparedMap::Impl& from, const PreparedMap::Impl& t
       });
 }
 
-/// Both directions: source into target and target into source; `res`: the "x res" unit.
 /// Angle between the target's z axis and the source's under T_target_source [deg]: (R e_z) . e_z.
 double tilt_deg(const Eigen::Matrix4d& T_target_source) {
   return std::acos(std::clamp(T_target_source(2, 2), -1.0, 1.0)) * 180.0 / M_PI;
 }
 
+/// Both directions: source into target and target into source; `res`: the "x res" unit.
 Validation check(const PreparedMap::Impl& target, const PreparedMap::Impl& source,
                  const Eigen::Matrix4d& T_target_source, std::size_t samples,
                  const ValidateConfig& c, std::size_t n_th, double res) {
