@@ -198,6 +198,7 @@ mapmerge::ServerStatus to_native(const StatusOut& s) {
   m.store_pending(s.store_pending);
   m.merges_queued(s.merges_queued);
   m.merges_queued_max(s.merges_queued_max);
+  m.merges_running(s.merges_running);
   return m;
 }
 

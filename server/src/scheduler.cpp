@@ -187,7 +187,9 @@ void Scheduler::stop() {
 
 SchedulerStats Scheduler::stats() const {
   std::lock_guard<std::mutex> lock(mutex_);
-  return stats_;
+  SchedulerStats s = stats_;
+  s.running = static_cast<std::size_t>(running_ + idle_running_);
+  return s;
 }
 
 bool Scheduler::idle() const {

@@ -303,6 +303,7 @@ void Server::publish_status() {
   s.merges_coalesced = sched.coalesced;
   s.merges_queued = sched.queued;
   s.merges_queued_max = sched.max_queued;
+  s.merges_running = sched.running;
   dds_->publish_status(s);
 }
 

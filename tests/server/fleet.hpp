@@ -105,6 +105,7 @@ struct ReceivedStatus {
   std::string store_error;
   std::uint64_t store_failures = 0, store_pending = 0;
   std::uint64_t merges_queued = 0, merges_queued_max = 0;
+  std::uint64_t merges_running = 0;               ///< jobs the server runs now
   std::size_t count = 0;                          ///< status samples received
 };
 

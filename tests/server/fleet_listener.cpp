@@ -66,6 +66,7 @@ struct FleetListener::Impl {
     status.store_pending = s.store_pending();
     status.merges_queued = s.merges_queued();
     status.merges_queued_max = s.merges_queued_max();
+    status.merges_running = s.merges_running();
     ++status.count;
   }
 

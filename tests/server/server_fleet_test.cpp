@@ -89,14 +89,16 @@ std::size_t extra_edges(const FleetListener& op) {
   return pairs.size();
 }
 
-/// Waits until the server has run no merge for `quiet` (status every second).
+/// Waits until the server has finished no merge, run none and queued none for `quiet` (status
+/// every second). Finished merges alone are not enough: a rescue or extra pair can run longer
+/// than `quiet` (under ASan), and the pair queued behind it would run after a restart.
 bool settled(FleetListener& op, std::chrono::seconds quiet, std::chrono::seconds timeout) {
   std::uint64_t last = op.status().merges_run;
   auto since = std::chrono::steady_clock::now();
   return op.wait_for([&] {
-    const std::uint64_t now = op.status().merges_run;
-    if (now != last) {
-      last = now;
+    const ReceivedStatus s = op.status();
+    if (s.merges_run != last || s.merges_running > 0 || s.merges_queued > 0) {
+      last = s.merges_run;
       since = std::chrono::steady_clock::now();
     }
     return std::chrono::steady_clock::now() - since >= quiet;

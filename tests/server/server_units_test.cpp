@@ -400,6 +400,8 @@ TEST(Scheduler, IdleWorkRunsOnSpareThreadsAndNeverStarvesARobot) {
     std::unique_lock<std::mutex> lock(m);
     ASSERT_TRUE(cv.wait_for(lock, 10s, [&] { return idle_running == 1; }));
   }
+  EXPECT_EQ(s.stats().running, 1u);  // an idle job counts as running work (status: merges_running)
+  EXPECT_EQ(s.stats().queued, 0u);
   MapSample sample;
   sample.robot_id = "r1";
   s.submit(sample);  // must run on the other thread while the idle job holds its own
@@ -408,6 +410,7 @@ TEST(Scheduler, IdleWorkRunsOnSpareThreadsAndNeverStarvesARobot) {
   EXPECT_EQ(idle_max, 1);  // two threads: at most one idle job at a time
   EXPECT_EQ(s.stats().idle_jobs_run, 3u);  // asked again after each job until none is left
   EXPECT_EQ(s.stats().jobs_run, 1u);
+  EXPECT_EQ(s.stats().running, 0u);
 }
 
 int this_threads_nice() { return getpriority(PRIO_PROCESS, static_cast<id_t>(gettid())); }

@@ -107,6 +107,7 @@ struct StatusOut {
   std::uint64_t store_pending = 0;   ///< writes held in memory until the store works again
   std::uint64_t merges_queued = 0;   ///< robots waiting for a worker now
   std::uint64_t merges_queued_max = 0;  ///< most robots ever waiting at once
+  std::uint64_t merges_running = 0;  ///< jobs running now (robots' turns and idle work)
 };
 
 double unix_now();

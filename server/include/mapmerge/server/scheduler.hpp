@@ -39,6 +39,7 @@ struct SchedulerStats {
   std::size_t queued = 0;        ///< robots waiting now [count]
   std::size_t max_queued = 0;    ///< most robots ever waiting at once [count]
   std::uint64_t idle_jobs_run = 0;  ///< idle jobs finished [count]
+  std::size_t running = 0;       ///< jobs running now, robots' and idle ones [count]
 };
 
 class Scheduler {
