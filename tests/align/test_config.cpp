@@ -47,6 +47,8 @@ TEST(AlignConfig, BadValuesAreErrors) {
   EXPECT_THROW(ma::parse_align_config("validate: {d_th: -1}\n"), ma::ConfigError);
   EXPECT_THROW(ma::parse_align_config("validate: {max_tilt_deg: 181}\n"), ma::ConfigError);
   EXPECT_THROW(ma::parse_align_config("validate: {max_pair_distance: -0.1}\n"), ma::ConfigError);
+  EXPECT_THROW(ma::parse_align_config("validate: {max_near_conflict_share: 1.5}\n"), ma::ConfigError);
+  EXPECT_EQ(ma::parse_align_config("validate: {max_near_conflict_share: 1}\n").validate.max_near_conflict_share, 1.0);
   EXPECT_EQ(ma::parse_align_config("validate: {max_tilt_deg: 180}\n").validate.max_tilt_deg, 180.0);
   EXPECT_THROW(ma::parse_align_config("[1, 2]\n"), ma::ConfigError);
   EXPECT_THROW(ma::parse_align_config("match: {method: [\n"), ma::ConfigError);

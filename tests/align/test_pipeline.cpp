@@ -150,8 +150,15 @@ TEST(AlignPipeline, RefiningACoarseRoomFromTheTruthDoesNotSlideTowardMoreOverlap
   };
   ma::AlignConfig wide;
   wide.refine.max_correspondence = 16.0;  // x u = 5 cm: 0.8 m
-  EXPECT_GT(slide(wide), 0.4) << "this pair no longer shows the slide";
+  ma::AlignConfig wide_unchecked = wide;
+  wide_unchecked.validate.max_near_conflict_share = 1.0;
+  EXPECT_GT(slide(wide_unchecked), 0.4) << "this pair no longer shows the slide";
   EXPECT_LT(slide(ma::AlignConfig{}), 0.25);  // ~0.14 m: under a 20 cm voxel
+  // The slid fit has ~9 % of its pairs in the target's free space a voxel or two from its
+  // surfaces: today's validation refuses it.
+  const ma::AlignResult slid = ma::refine(target, source, p.T_true, wide);
+  EXPECT_FALSE(slid.accepted);
+  EXPECT_NE(slid.reason.find("near conflicts"), std::string::npos) << slid.reason;
 }
 
 TEST(AlignPipeline, CandidatesAreRankedByPairsWithinAVoxelOnCoarseMapsAndWithinDthOnFineOnes) {
@@ -176,6 +183,53 @@ TEST(AlignPipeline, CandidatesAreRankedByPairsWithinAVoxelOnCoarseMapsAndWithinD
   ma::AlignConfig uncapped;
   uncapped.validate.max_pair_distance = 0.0;
   EXPECT_EQ(ma::validate(target, source, room.T_true, uncapped).close_pairs, coarse.inliers);
+}
+
+TEST(AlignPipeline, OnCoarseMapsPairsAVoxelOrTwoOffInTheOtherMapsFreeSpaceCountAgainstATransform) {
+  // A pair within d_th but beyond the ranking distance (0.2-0.4 m at 20 cm) whose point lies in
+  // space the other map saw empty is a near conflict: quantisation keeps two maps of one surface
+  // within a voxel, so such points are misfit, not noise. The room at 20 cm: the truth has few;
+  // slid 0.4 m along the cut axis (the direction of session 27's wrong merges) or turned 3 deg
+  // about it through the strip, many more.
+  Eigen::Vector3d strip;
+  const Pair room = room_at_20cm(strip);
+  const ma::AlignConfig defaults;
+  const ma::PreparedMap target = ma::prepare_for_refine(*room.target, defaults);
+  const ma::PreparedMap source = ma::prepare_for_refine(*room.source, defaults);
+  const ma::Validation truth = ma::validate(target, source, room.T_true, defaults);
+  EXPECT_LT(truth.near_conflict_share, defaults.validate.max_near_conflict_share);
+  EXPECT_DOUBLE_EQ(truth.near_conflict_share,
+                   static_cast<double>(truth.near_conflicts) / static_cast<double>(truth.inliers));
+  // The ranking's score (ValidateConfig::conflict_weight).
+  const auto score = [&](const ma::Validation& v) {
+    return static_cast<double>(v.close_pairs) -
+           defaults.validate.conflict_weight * static_cast<double>(v.conflicts + v.near_conflicts);
+  };
+  const auto moved = [&](const Eigen::Affine3d& m) {
+    const ma::Validation v = ma::validate(target, source, m.matrix() * room.T_true, defaults);
+    EXPECT_GT(v.near_conflicts, 3 * truth.near_conflicts);
+    EXPECT_LT(score(v), score(truth));
+    return v;
+  };
+  // Slid into the target's side it finds more partners within a voxel than the truth (1550
+  // against 1455): the ranking without near conflicts preferred it. Its near conflicts (~9 % of
+  // its pairs) also refuse it.
+  const ma::Validation slid = moved(Eigen::Affine3d(Eigen::Translation3d(-0.4, 0.0, 0.0)));
+  EXPECT_GT(slid.close_pairs, truth.close_pairs);
+  EXPECT_GT(slid.near_conflict_share, defaults.validate.max_near_conflict_share);
+  moved(Eigen::Affine3d(Eigen::Translation3d(0.4, 0.0, 0.0)));
+  for (const double sign : {-1.0, 1.0})
+    moved(Eigen::Translation3d(strip) * Eigen::AngleAxisd(sign * 3.0 * M_PI / 180.0, Eigen::Vector3d::UnitX()) *
+          Eigen::Translation3d(-strip));
+
+  // At 5 cm and finer the ranking distance is d_th itself: there is no such band.
+  const Pair paper = make_pair(fr079(), box(-10, -10, 0, 2, 10, 2), box(-2, -10, 0, 10, 10, 2),
+                               mapmerge::paper_transform(12, 6, 0.5, 5, 5, 60));
+  const ma::PreparedMap t5 = ma::prepare_for_refine(*paper.target, defaults);
+  const ma::PreparedMap s5 = ma::prepare_for_refine(*paper.source, defaults);
+  const Eigen::Affine3d off(Eigen::Translation3d(0.3, 0.0, 0.0));
+  EXPECT_EQ(ma::validate(t5, s5, paper.T_true, defaults).near_conflicts, 0U);
+  EXPECT_EQ(ma::validate(t5, s5, off.matrix() * paper.T_true, defaults).near_conflicts, 0U);
 }
 
 TEST(AlignPipeline, SameDefaultsRecoverAMapOnA2cmGrid) {

@@ -53,7 +53,7 @@ double tolerance_of(const PreparedMap::Impl& a, const PreparedMap::Impl& b, cons
 // Stage 7: validation.
 
 struct Counts {
-  std::size_t inliers = 0, close = 0, conflicts = 0, checked = 0;
+  std::size_t inliers = 0, close = 0, conflicts = 0, near_conflicts = 0, checked = 0;
   double sum = 0.0;
 };
 
@@ -87,8 +87,12 @@ Counts check_direction(const PreparedMap::Impl& from, const PreparedMap::Impl& t
           const double d = near ? std::sqrt(static_cast<double>(d2[0])) : std::numeric_limits<double>::infinity();
           if (d <= d_th) {
             ++acc.inliers;
-            acc.close += d <= d_close;
             acc.sum += d;
+            if (d <= d_close) {
+              ++acc.close;
+            } else if (to.free_space->contains(Eigen::Vector3d(p.x, p.y, p.z))) {
+              ++acc.near_conflicts;
+            }
           } else if (d > d_conflict) {
             if (to.free_space->contains(Eigen::Vector3d(p.x, p.y, p.z))) ++acc.conflicts;
           }
@@ -99,6 +103,7 @@ Counts check_direction(const PreparedMap::Impl& from, const PreparedMap::Impl& t
         a.inliers += b.inliers;
         a.close += b.close;
         a.conflicts += b.conflicts;
+        a.near_conflicts += b.near_conflicts;
         a.checked += b.checked;
         a.sum += b.sum;
         return a;
@@ -120,6 +125,7 @@ Validation check(const PreparedMap::Impl& target, const PreparedMap::Impl& sourc
   v.inliers = a.inliers + b.inliers;
   v.close_pairs = a.close + b.close;
   v.conflicts = a.conflicts + b.conflicts;
+  v.near_conflicts = a.near_conflicts + b.near_conflicts;
   v.checked = a.checked + b.checked;
   const bool enough = v.inliers >= n_th && v.inliers > 0;
   v.fitness = enough ? (a.sum + b.sum) / static_cast<double>(v.inliers)
@@ -128,13 +134,15 @@ Validation check(const PreparedMap::Impl& target, const PreparedMap::Impl& sourc
   v.overlap = v.checked ? seen / static_cast<double>(v.checked) : 0.0;
   v.inlier_share = seen > 0.0 ? static_cast<double>(v.inliers) / seen : 0.0;
   v.inlier_fraction = v.checked ? static_cast<double>(v.inliers) / static_cast<double>(v.checked) : 0.0;
+  v.near_conflict_share = v.inliers ? static_cast<double>(v.near_conflicts) / static_cast<double>(v.inliers) : 0.0;
   v.tilt_deg = tilt_deg(T_target_source);
   return v;
 }
 
-/// Ranking score of a validated transform: close agreement minus weighted contradiction.
+/// Ranking score of a validated transform: close agreement minus weighted contradiction (far
+/// and near conflicts alike).
 double score_of(const Validation& v, double conflict_weight) {
-  return static_cast<double>(v.close_pairs) - conflict_weight * static_cast<double>(v.conflicts);
+  return static_cast<double>(v.close_pairs) - conflict_weight * static_cast<double>(v.conflicts + v.near_conflicts);
 }
 
 /// Empty string when `v` passes every acceptance test, else the reason.
@@ -152,6 +160,10 @@ std::string rejection(const Validation& v, const ValidateConfig& c, double res) 
   } else if (v.inlier_share < c.min_inlier_share) {
     why << "contradicts free space: inlier share " << v.inlier_share << " below "
         << c.min_inlier_share;
+  } else if (v.near_conflict_share > c.max_near_conflict_share) {
+    why << "near conflicts: " << v.near_conflict_share << " of the pairs within d_th lie in the other map's free space "
+        << "beyond " << close_distance(c, res) << " m of its surfaces, above validate.max_near_conflict_share "
+        << c.max_near_conflict_share;
   }
   return why.str();
 }

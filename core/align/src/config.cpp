@@ -79,6 +79,7 @@ void for_each_field(Config& c, F&& f) {
   f("validate", "max_fitness", v.max_fitness);
   f("validate", "conflict_distance", v.conflict_distance);
   f("validate", "min_inlier_share", v.min_inlier_share);
+  f("validate", "max_near_conflict_share", v.max_near_conflict_share);
   f("validate", "conflict_weight", v.conflict_weight);
   f("validate", "max_tilt_deg", v.max_tilt_deg);
   f("validate", "ambiguity_ratio", v.ambiguity_ratio);
@@ -264,6 +265,8 @@ void check_align_config(const AlignConfig& c) {
   require(c.validate.max_pair_distance >= 0.0, "validate.max_pair_distance >= 0");
   require(c.validate.min_inlier_share >= 0.0 && c.validate.min_inlier_share <= 1.0,
           "validate.min_inlier_share in [0, 1]");
+  require(c.validate.max_near_conflict_share >= 0.0 && c.validate.max_near_conflict_share <= 1.0,
+          "validate.max_near_conflict_share in [0, 1]");
   require(c.validate.max_tilt_deg >= 0.0 && c.validate.max_tilt_deg <= 180.0, "validate.max_tilt_deg in [0, 180]");
   require(c.validate.coarse_points >= 10, "validate.coarse_points >= 10");
   require(c.validate.refine_candidates >= 1, "validate.refine_candidates >= 1");

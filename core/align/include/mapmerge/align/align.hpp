@@ -43,10 +43,12 @@ struct Validation {
   std::size_t inliers = 0;      ///< n_w of Eq. 8, both directions [count]
   std::size_t close_pairs = 0;  ///< of those, pairs within the ranking distance (ValidateConfig::max_pair_distance) [count]
   std::size_t conflicts = 0;    ///< points landing in the other map's known free space [count]
+  std::size_t near_conflicts = 0;  ///< pairs within d_th but beyond the ranking distance whose point lies in the other map's known free space [count]
   std::size_t checked = 0;      ///< points tested, both directions [count]
   double overlap = 0.0;         ///< (inliers + conflicts) / checked: share seen by both maps [0..1]
   double inlier_share = 0.0;    ///< inliers / (inliers + conflicts) [0..1]
   double inlier_fraction = 0.0;  ///< inliers / checked [0..1]
+  double near_conflict_share = 0.0;  ///< near_conflicts / inliers [0..1]
   double tilt_deg = 0.0;        ///< angle between the target's z axis and the source's under the transform [deg]
 };
 
