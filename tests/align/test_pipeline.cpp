@@ -236,12 +236,11 @@ TEST(AlignPipeline, SameDefaultsRecoverAMapOnA2cmGrid) {
   // The room cut and moved at its 5 cm, then both parts resampled onto a 2 cm grid (RGB-D
   // voxels; ~0.9M points each, the detail still that of 5 cm): no preset. Features see the
   // same 5 cm-unit clouds, tolerances stay at scale.accuracy_unit (5 cm), not at 2 cm.
-  const auto tree = load("fr_078_tidyup.bt");
-  const Pair coarse = make_pair(*tree, box(-11, -9, -2, -3, 3, 4), box(-7, -9, -2, 1, 3, 4),
+  const Pair coarse = make_pair(tidyup(), box(-11, -9, -2, -3, 3, 4), box(-7, -9, -2, 1, 3, 4),
                                 mapmerge::paper_transform(2, -1, 0.2, -3, 2, 70));
   const Pair p{mapmerge::refine(*coarse.target, 0.02), mapmerge::refine(*coarse.source, 0.02), coarse.T_true};
   ASSERT_NEAR(p.target->getResolution(), 0.02, 1e-12);
-  expect_placed_by_defaults(p, tree->getResolution());
+  expect_placed_by_defaults(p, tidyup().getResolution());
 }
 
 TEST(AlignPipeline, GroundRemovalLeavesTheFloorToIcpAndFindsTheSameTransform) {
@@ -432,8 +431,7 @@ TEST(AlignPipeline, AnAmbiguousRefusalIsFinalAndGetsNoSecondSearch) {
 }
 
 TEST(AlignPipeline, RecoversARoomWithSubmodels) {
-  const auto tree = load("fr_078_tidyup.bt");
-  const Pair p = make_pair(*tree, box(-11, -9, -2, -1, 6, 4), box(-6, -9, -2, 3, 6, 4),
+  const Pair p = make_pair(tidyup(), box(-11, -9, -2, -1, 6, 4), box(-6, -9, -2, 3, 6, 4),
                            mapmerge::paper_transform(3, -2, 0, 2, -2, -100));
   ma::AlignConfig c;
   c.submodels.enabled = true;
@@ -441,7 +439,7 @@ TEST(AlignPipeline, RecoversARoomWithSubmodels) {
   ASSERT_TRUE(r.accepted) << r.reason;
   const Errors e = errors(r.T_target_source, p.T_true);
   EXPECT_LT(e.rot_deg, 1.0);
-  EXPECT_LT(e.trans_m, 2 * tree->getResolution());
+  EXPECT_LT(e.trans_m, 2 * tidyup().getResolution());
   EXPECT_GE(r.submodel, 0);
 }
 
@@ -457,11 +455,9 @@ TEST(AlignPipeline, DisjointPartsOfTheSameCorridorAreNotAccepted) {
 }
 
 TEST(AlignPipeline, DifferentBuildingsAreNotAccepted) {
-  const auto room = load("fr_078_tidyup.bt");
   std::shared_ptr<const octomap::OcTree> corridor =
       mapmerge::crop_and_transform(fr079(), box(-10, -10, -1, 5, 10, 3), Eigen::Isometry3d::Identity());
-  const ma::AlignResult r = ma::align_maps(*room, *corridor,
-                                           ma::AlignConfig{});
+  const ma::AlignResult r = ma::align_maps(tidyup(), *corridor, ma::AlignConfig{});
   EXPECT_FALSE(r.accepted);
 }
 

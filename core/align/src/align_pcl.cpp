@@ -85,16 +85,17 @@ Counts check_direction(const PreparedMap::Impl& from, const PreparedMap::Impl& t
           ++acc.checked;
           const bool near = to.full_tree->radiusSearch(p, reach, idx, d2, 1) >= 1;
           const double d = near ? std::sqrt(static_cast<double>(d2[0])) : std::numeric_limits<double>::infinity();
+          const auto seen_free = [&] { return to.free_space->contains(Eigen::Vector3d(p.x, p.y, p.z)); };
           if (d <= d_th) {
             ++acc.inliers;
             acc.sum += d;
             if (d <= d_close) {
               ++acc.close;
-            } else if (to.free_space->contains(Eigen::Vector3d(p.x, p.y, p.z))) {
+            } else if (seen_free()) {
               ++acc.near_conflicts;
             }
-          } else if (d > d_conflict) {
-            if (to.free_space->contains(Eigen::Vector3d(p.x, p.y, p.z))) ++acc.conflicts;
+          } else if (d > d_conflict && seen_free()) {
+            ++acc.conflicts;
           }
         }
         return acc;
