@@ -24,6 +24,18 @@ double ms_since(Clock::time_point t0) {
   return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
 }
 
+/// What optimise() and chain() start from: the work graph of `graph`'s edges with its cycles
+/// checked; `out` marked valid, with the reference and the consistency check's time.
+WorkGraph checked_work_graph(const PoseGraph& graph, const GraphConfig& config, GraphSolution& out) {
+  out.valid = true;
+  out.reference = graph.reference();
+  WorkGraph g = detail::build_work_graph(graph.reference(), graph.robots(), graph.edges(), config.tree);
+  const auto t = Clock::now();
+  detail::check_consistency(g, config.consistency);
+  out.summary.consistency_ms = ms_since(t);
+  return g;
+}
+
 void check_edge(const Edge& e) {
   if (e.source.empty() || e.target.empty()) throw std::invalid_argument("edge: empty robot id");
   if (e.source == e.target) throw std::invalid_argument("edge: source == target (" + e.source + ")");
@@ -120,18 +132,12 @@ GraphSolution PoseGraph::optimise(const GraphConfig& config) {
   if (!dirty_ && same(config, last_config_) && last_solution_.valid) return last_solution_;
   const auto t0 = Clock::now();
   if (reference_.empty()) return detail::invalid_solution(robots(), "no reference robot set");
-
   GraphSolution out;
-  out.valid = true;
-  out.reference = reference_;
-  WorkGraph g = detail::build_work_graph(reference_, robots(), edges_, config.tree);
-  auto t = Clock::now();
-  detail::check_consistency(g, config.consistency);
-  out.summary.consistency_ms = ms_since(t);
+  WorkGraph g = checked_work_graph(*this, config, out);
 
   detail::Tree tree;
   std::vector<Eigen::Isometry3d> poses;
-  t = Clock::now();
+  auto t = Clock::now();
   for (int round = 0;; ++round) {
     tree = detail::build_tree(g);
     out.summary.warm_started = detail::warm_start(g, tree, last_poses_, config.solver, poses) || out.summary.warm_started;
@@ -172,12 +178,7 @@ GraphSolution PoseGraph::chain(const GraphConfig& config) const {
   const auto t0 = Clock::now();
   if (reference_.empty()) return detail::invalid_solution(robots(), "no reference robot set");
   GraphSolution out;
-  out.valid = true;
-  out.reference = reference_;
-  WorkGraph g = detail::build_work_graph(reference_, robots(), edges_, config.tree);
-  auto t = Clock::now();
-  detail::check_consistency(g, config.consistency);
-  out.summary.consistency_ms = ms_since(t);
+  const WorkGraph g = checked_work_graph(*this, config, out);
   const detail::Tree tree = detail::build_tree(g);
   detail::fill_solution(g, tree.reached, tree.T_global, tree.covariance, config, out);
   out.summary.total_ms = ms_since(t0);
